@@ -1,0 +1,38 @@
+# Two commands do everything on a fresh Debian/Ubuntu machine with Python >= 3.10:
+#   make demo   set up, then simulate the default scenario and write its dataset and picture
+#   make test   set up, then run the test suite
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+OUT ?= out
+
+.PHONY: demo test bench setup system-deps clean
+
+demo: setup
+	$(BIN)/dem-graph simulate --scenario demo --out $(OUT)/demo/dataset --overwrite
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+bench: setup
+	$(BIN)/dem-graph bench-sim
+
+setup: $(VENV)/.installed
+
+# open3d needs the system library libusb-1.0 at import time
+system-deps:
+	@if ! { ldconfig -p || /sbin/ldconfig -p; } 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+		echo "installing libusb-1.0-0 (needed by open3d)"; \
+		SUDO=""; [ "$$(id -u)" -ne 0 ] && SUDO="sudo"; \
+		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0; \
+	fi
+
+$(VENV)/.installed: pyproject.toml | system-deps
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 10) else "dem_graph needs Python >= 3.10")'
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	@touch $@
+
+clean:
+	rm -rf $(VENV) $(OUT) .pytest_cache

@@ -1,0 +1,96 @@
+"""The ``dem-graph`` command line: one thin command per library function.
+
+Library errors (:class:`DemGraphError`) become a one-line message on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+from pathlib import Path
+
+import click
+
+from dem_graph.errors import DemGraphError
+
+
+def _friendly_errors(fn):
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except DemGraphError as exc:
+            click.echo(f"dem-graph: error: {exc}", err=True)
+            sys.exit(2)
+        except KeyboardInterrupt:
+            click.echo("dem-graph: interrupted", err=True)
+            sys.exit(130)
+
+    return wrapper
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("-v", "--verbose", count=True, help="More log output (-v info, -vv debug).")
+@click.option("--no-progress", is_flag=True, help="Hide progress bars.")
+@click.version_option(package_name="dem-graph")
+def main(verbose: int, no_progress: bool) -> None:
+    """Camera + single-line laser SLAM and dense Digital Elevation Maps."""
+    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    if no_progress:
+        from dem_graph.progress import set_progress_enabled
+
+        set_progress_enabled(False)
+
+
+@main.command()
+def scenarios() -> None:
+    """List the built-in simulation scenarios."""
+    from dem_graph.sim.scenarios import DEFAULT_SCENARIO, describe_scenarios
+
+    for name, text in describe_scenarios().items():
+        mark = " (default)" if name == DEFAULT_SCENARIO else ""
+        click.echo(f"{name:8s} {text}{mark}")
+
+
+@main.command()
+@click.option("--scenario", "scenario_name", default=None, help="Scenario name (see `dem-graph scenarios`); default: demo.")
+@click.option("--seed", type=int, default=None, help="Random seed; the same seed gives the same dataset.")
+@click.option("--length-m", type=float, default=None, help="Distance to drive, metres.")
+@click.option("--speed-mps", type=float, default=None, help="Mean speed, m/s.")
+@click.option("--no-odometry", is_flag=True, help="Leave wheel odometry out of the dataset.")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output dataset folder.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
+@_friendly_errors
+def simulate(scenario_name, seed, length_m, speed_mps, no_odometry, out_dir, overwrite) -> None:
+    """Simulate a scenario and write it as a dataset folder, with a preview picture."""
+    from dem_graph.sim.pipeline import simulate as run
+    from dem_graph.sim.scenarios import DEFAULT_SCENARIO, scenario
+
+    config = scenario(scenario_name or DEFAULT_SCENARIO, seed=seed, length_m=length_m, speed_mps=speed_mps, with_odometry=False if no_odometry else None)
+    result = run(config, out_dir, overwrite=overwrite)
+    click.echo(
+        f"simulated '{config.name}' (seed {config.seed}): {result.length_m:.1f} m in {result.duration_s:.1f} s, "
+        f"{result.n_frames} frames, {result.n_scans} laser scans, {result.n_odometry} odometry increments "
+        f"({result.elapsed_s:.1f} s of computing)"
+    )
+    click.echo(f"dataset: {result.out_dir}")
+    if result.preview_png:
+        click.echo(f"picture: {result.preview_png}")
+
+
+@main.command("bench-sim")
+@click.option("--scenario", "scenario_name", default="paper", show_default=True, help="Scenario to benchmark.")
+@click.option("--frames", "n_frames", type=int, default=40, show_default=True, help="Frames to render for the timing.")
+@click.option("--skip-full", is_flag=True, help="Skip simulating the whole scenario to disk.")
+@_friendly_errors
+def bench_sim(scenario_name, n_frames, skip_full) -> None:
+    """Benchmark the simulator: render and laser throughput, and the time to simulate a scenario."""
+    from dem_graph.sim.bench import bench_sim as run
+
+    click.echo(run(scenario_name, n_frames=n_frames, full=not skip_full).table())
+
+
+if __name__ == "__main__":
+    main()

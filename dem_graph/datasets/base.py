@@ -1,0 +1,65 @@
+"""The dataset interface that the simulator, the folder format, KITTI and rosbag implement."""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from dem_graph.datasets.events import Event
+from dem_graph.geometry.grid import ElevationGrid
+from dem_graph.geometry.rig import SensorRig
+from dem_graph.geometry.trajectory import Trajectory
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """What a dataset knows for certain, when it knows it."""
+
+    trajectory: Trajectory  # T_world_body, queryable at any time inside its span
+    elevation: ElevationGrid | None = None  # the terrain, world metres
+
+
+class Sequence(abc.ABC):
+    """A time-ordered stream of camera frames, laser scans and (optionally) odometry.
+
+    Implementations must yield events in non-decreasing time order, give ``T_world_body`` at
+    ``t_start_s`` (the estimate is anchored there), and say whether ground truth is known.
+    """
+
+    name: str = "sequence"
+
+    @property
+    @abc.abstractmethod
+    def rig(self) -> SensorRig: ...
+
+    @property
+    @abc.abstractmethod
+    def t_start_s(self) -> float:
+        """Time of the initial pose; no event is earlier."""
+
+    @property
+    @abc.abstractmethod
+    def T_world_body_initial(self) -> np.ndarray:
+        """4x4 body pose at :attr:`t_start_s`."""
+
+    @property
+    def ground_truth(self) -> GroundTruth | None:
+        return None
+
+    @property
+    def has_odometry(self) -> bool:
+        return False
+
+    def event_count(self) -> int | None:
+        """How many events :meth:`events` yields, when known cheaply (for progress bars)."""
+        return None
+
+    @abc.abstractmethod
+    def events(self) -> Iterator[Event]:
+        """Every event in time order. Each call starts from the beginning."""
+
+    def __iter__(self) -> Iterator[Event]:
+        return self.events()

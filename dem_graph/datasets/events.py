@@ -1,0 +1,50 @@
+"""The time-ordered events every estimator reads."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CameraFrame:
+    """One image: (H,W) uint8 grey or (H,W,3) uint8 BGR, taken at ``t_s``."""
+
+    t_s: float
+    image: np.ndarray = field(repr=False)
+    index: int = 0
+
+
+@dataclass(frozen=True)
+class LaserScan:
+    """One scan: a range per beam of the rig's laser, metres; NaN means no return."""
+
+    t_s: float
+    ranges_m: np.ndarray = field(repr=False)
+    index: int = 0
+
+    def valid(self, range_min_m: float, range_max_m: float) -> np.ndarray:
+        """Mask of beams with a usable return (finite and inside the range limits)."""
+        r = self.ranges_m
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(r) & (r >= range_min_m) & (r <= range_max_m)
+
+
+@dataclass(frozen=True)
+class Odometry:
+    """Body motion measured between ``t_prev_s`` and ``t_s``.
+
+    ``T_prev_curr`` is the pose of the body at ``t_s`` in the body frame at ``t_prev_s``;
+    ``covariance`` is its 6x6 uncertainty in gtsam's tangent order [rotation, translation]
+    (radians^2, metres^2), as a right perturbation ``T_prev_curr * Exp(xi)``.
+    """
+
+    t_s: float
+    t_prev_s: float
+    T_prev_curr: np.ndarray = field(repr=False)
+    covariance: np.ndarray = field(repr=False)
+    index: int = 0
+
+
+Event = CameraFrame | LaserScan | Odometry

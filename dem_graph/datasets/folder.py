@@ -1,0 +1,597 @@
+"""The on-disk dataset folder format (``dem_graph-folder``, version 1).
+
+A dataset is one folder::
+
+    DIR/dataset.yaml                  metadata (below); written last, so a half-written folder does not open
+    DIR/rig.yaml                      the sensor rig (dem_graph.geometry.rig.save_rig / load_rig)
+    DIR/images/000000.png             camera frames in order, lossless 8-bit PNG, grey (H,W) or BGR (H,W,3)
+    DIR/camera.csv                    header ``index,t_s,file``; one line per frame, ``file`` relative to DIR
+    DIR/laser.npz                     t_s float64 (N,); ranges_m float32 (N,B), B = the rig's beam count
+    DIR/odometry.npz                  t_s, t_prev_s float64 (N,); T_prev_curr float64 (N,4,4);
+                                      covariance float64 (N,6,6). Absent when the sequence has no odometry
+    DIR/ground_truth/trajectory.tum   ground-truth T_world_body (TUM text), when ground truth exists
+    DIR/ground_truth/elevation.tif    ground-truth terrain (GeoTIFF, band "elevation"), when known
+
+``dataset.yaml`` holds ``format: dem_graph-folder``, ``version: 1``, ``name``, ``t_start_s``,
+``T_world_body_initial`` (the body pose at ``t_start_s``, a 4x4 nested list, row-major),
+``counts`` (``frames``, ``scans``, ``odometry``), ``has_ground_truth`` and a free-form
+``description``.
+
+Conventions: times in seconds, ranges in metres, NaN range = no return. Poses are ``T_world_body``
+(maps body coordinates to world coordinates). Odometry ``T_prev_curr`` is the body pose at ``t_s``
+in the body frame at ``t_prev_s``; its covariance is in gtsam's tangent order [rotation,
+translation] (rad^2, m^2). Within each stream times strictly increase; no event is before
+``t_start_s``. Every float is written exactly (repr in text files, native dtype in npz), so a
+dataset read and written again is identical. The ``index`` of each event is its position in its
+stream. Events are replayed merged in time order; at equal times odometry comes first, then laser,
+then camera.
+
+:class:`FolderSequence` reads and validates every small file when it is opened and reads images
+lazily while :meth:`FolderSequence.events` iterates. :func:`write_folder_dataset` writes any
+:class:`Sequence` in this format, streaming its images to disk.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import zipfile
+import zlib
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from dem_graph.datasets.base import GroundTruth, Sequence
+from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
+from dem_graph.errors import ConfigError, DatasetError
+from dem_graph.geometry.rig import SensorRig, load_rig, save_rig
+from dem_graph.geometry.se3 import check_pose
+from dem_graph.io.geotiff import read_elevation, write_elevation
+from dem_graph.io.tum import read_tum, write_tum
+from dem_graph.progress import progress
+
+FORMAT_NAME = "dem_graph-folder"
+FORMAT_VERSION = 1
+
+DATASET_YAML = "dataset.yaml"
+RIG_YAML = "rig.yaml"
+CAMERA_CSV = "camera.csv"
+LASER_NPZ = "laser.npz"
+ODOMETRY_NPZ = "odometry.npz"
+IMAGES_DIR = "images"
+GROUND_TRUTH_DIR = "ground_truth"
+GT_TRAJECTORY = "ground_truth/trajectory.tum"
+GT_ELEVATION = "ground_truth/elevation.tif"
+CAMERA_HEADER = ["index", "t_s", "file"]
+
+_POSE_TOL = 1e-6
+# merge priority at equal times
+_ODOMETRY, _LASER, _CAMERA = 0, 1, 2
+
+
+# ----------------------------------------------------------------------------------------------
+# validation shared by the reader and the writer (the writer checks what it writes)
+
+
+def _check_times(path: Path, name: str, t: np.ndarray, t_start_s: float) -> None:
+    if not np.all(np.isfinite(t)):
+        i = int(np.argmax(~np.isfinite(t)))
+        raise DatasetError(path, f"{name}[{i}] is NaN or infinite")
+    if len(t) > 1 and np.any(np.diff(t) <= 0):
+        i = int(np.argmax(np.diff(t) <= 0)) + 1
+        raise DatasetError(
+            path, f"{name} is not strictly increasing at index {i} ({float(t[i])!r} after {float(t[i - 1])!r})"
+        )
+    if len(t) and t[0] < t_start_s:
+        raise DatasetError(path, f"{name}[0] = {float(t[0])!r} is before t_start_s = {t_start_s!r}")
+
+
+def _check_float_array(path: Path, name: str, a: np.ndarray, shape: tuple) -> None:
+    """Check the dtype class and shape of ``a``; a ``str`` in ``shape`` names a free dimension."""
+    if not np.issubdtype(a.dtype, np.floating):
+        raise DatasetError(path, f"{name} must be floating point, got dtype {a.dtype}")
+    ok = a.ndim == len(shape) and all(isinstance(s, str) or s == n for s, n in zip(shape, a.shape))
+    if not ok:
+        expected = "(" + ", ".join(str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+        raise DatasetError(path, f"{name} has shape {a.shape}, expected {expected}")
+
+
+def _check_laser(path: Path, t_s: np.ndarray, ranges_m: np.ndarray, beam_count: int, t_start_s: float) -> None:
+    _check_float_array(path, "t_s", t_s, ("N",))
+    _check_float_array(path, "ranges_m", ranges_m, ("N", "B"))
+    if ranges_m.shape[0] != len(t_s):
+        raise DatasetError(path, f"ranges_m has {ranges_m.shape[0]} scans but t_s has {len(t_s)} times")
+    if ranges_m.shape[1] != beam_count:
+        raise DatasetError(path, f"ranges_m has {ranges_m.shape[1]} beams per scan, the rig's laser has {beam_count}")
+    with np.errstate(invalid="ignore"):
+        bad = np.isinf(ranges_m) | (ranges_m < 0)
+    if np.any(bad):
+        i, j = (int(k) for k in np.argwhere(bad)[0])
+        raise DatasetError(path, f"scan {i} beam {j}: range {float(ranges_m[i, j])!r} is invalid (use NaN for no return)")
+    _check_times(path, "t_s", t_s, t_start_s)
+
+
+def _check_odometry(
+    path: Path, t_s: np.ndarray, t_prev_s: np.ndarray, T_prev_curr: np.ndarray, covariance: np.ndarray, t_start_s: float
+) -> None:
+    _check_float_array(path, "t_s", t_s, ("N",))
+    n = len(t_s)
+    _check_float_array(path, "t_prev_s", t_prev_s, (n,))
+    _check_float_array(path, "T_prev_curr", T_prev_curr, (n, 4, 4))
+    _check_float_array(path, "covariance", covariance, (n, 6, 6))
+    _check_times(path, "t_s", t_s, t_start_s)
+    if not np.all(np.isfinite(t_prev_s)):
+        raise DatasetError(path, f"t_prev_s[{int(np.argmax(~np.isfinite(t_prev_s)))}] is NaN or infinite")
+    if np.any(t_prev_s > t_s):
+        i = int(np.argmax(t_prev_s > t_s))
+        raise DatasetError(path, f"odometry {i}: t_prev_s = {float(t_prev_s[i])!r} is after t_s = {float(t_s[i])!r}")
+    finite = np.all(np.isfinite(T_prev_curr), axis=(1, 2))
+    if not np.all(finite):
+        raise DatasetError(path, f"T_prev_curr[{int(np.argmin(finite))}] contains NaN or infinite values")
+    if n:
+        R = T_prev_curr[:, :3, :3]
+        last_row_ok = np.all(np.abs(T_prev_curr[:, 3, :] - [0.0, 0.0, 0.0, 1.0]) <= _POSE_TOL, axis=1)
+        orthonormal = np.all(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)) <= _POSE_TOL, axis=(1, 2))
+        rigid = last_row_ok & orthonormal & (np.linalg.det(R) > 0)
+        if not np.all(rigid):
+            raise DatasetError(path, f"T_prev_curr[{int(np.argmin(rigid))}] is not a rigid transform")
+    finite = np.all(np.isfinite(covariance), axis=(1, 2))
+    if not np.all(finite):
+        raise DatasetError(path, f"covariance[{int(np.argmin(finite))}] contains NaN or infinite values")
+    if n:
+        scale = np.maximum(1.0, np.max(np.abs(covariance), axis=(1, 2)))
+        symmetric = np.max(np.abs(covariance - np.swapaxes(covariance, 1, 2)), axis=(1, 2)) <= 1e-9 * scale
+        if not np.all(symmetric):
+            raise DatasetError(path, f"covariance[{int(np.argmin(symmetric))}] is not symmetric")
+
+
+def _check_image(path: Path, image: np.ndarray) -> None:
+    if image.dtype != np.uint8 or not (image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3)) or image.size == 0:
+        raise DatasetError(
+            path, f"expected an 8-bit grey (H,W) or BGR (H,W,3) image, got dtype {image.dtype} shape {image.shape}"
+        )
+
+
+def _initial_pose(path: Path, T) -> np.ndarray:
+    try:
+        return check_pose(T, "T_world_body_initial")
+    except ConfigError as exc:
+        raise DatasetError(path, exc.problem) from None
+
+
+# ----------------------------------------------------------------------------------------------
+# reading
+
+
+def _require_file(path: Path, what: str) -> None:
+    if not path.is_file():
+        raise DatasetError(path, f"{what} not found" if not path.exists() else f"{what} is not a regular file")
+
+
+def _load_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    # the file is opened here so that it is closed even when numpy fails half-way through np.load
+    try:
+        with open(path, "rb") as f:
+            try:
+                archive = np.load(f, allow_pickle=False)
+            except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+                raise DatasetError(path, f"not a readable npz archive ({exc})") from None
+            if not isinstance(archive, np.lib.npyio.NpzFile):
+                raise DatasetError(path, "not an npz archive (a single .npy array)")
+            with archive:
+                arrays = {}
+                for key in keys:
+                    if key not in archive.files:
+                        raise DatasetError(path, f"missing array {key!r} (has: {', '.join(archive.files) or 'none'})")
+                    try:
+                        arrays[key] = archive[key]
+                    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+                        raise DatasetError(path, f"array {key!r} is corrupt ({exc})") from None
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read ({exc.strerror or exc})") from None
+    return arrays
+
+
+def _read_metadata(path: Path) -> dict:
+    _require_file(path, "dataset description")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise DatasetError(path, f"not valid YAML ({str(exc).splitlines()[0]})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(path, f"cannot read ({exc})") from None
+    if not isinstance(data, dict):
+        raise DatasetError(path, "must hold a mapping (format, version, name, ...)")
+    if data.get("format") != FORMAT_NAME:
+        raise DatasetError(path, f"format is {data.get('format')!r}, expected {FORMAT_NAME!r}")
+    if data.get("version") != FORMAT_VERSION or isinstance(data.get("version"), bool):
+        raise DatasetError(path, f"unsupported format version {data.get('version')!r} (this reader supports {FORMAT_VERSION})")
+    for key in ("name", "t_start_s", "T_world_body_initial", "counts", "has_ground_truth"):
+        if key not in data:
+            raise DatasetError(path, f"missing key {key!r}")
+    if not isinstance(data["name"], str):
+        raise DatasetError(path, "name must be a string")
+    t0 = data["t_start_s"]
+    if isinstance(t0, bool) or not isinstance(t0, (int, float)) or not math.isfinite(t0):
+        raise DatasetError(path, f"t_start_s must be a finite number, got {t0!r}")
+    counts = data["counts"]
+    if not isinstance(counts, dict):
+        raise DatasetError(path, "counts must be a mapping with frames, scans and odometry")
+    for key in ("frames", "scans", "odometry"):
+        n = counts.get(key)
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise DatasetError(path, f"counts.{key} must be a non-negative integer, got {n!r}")
+    if not isinstance(data["has_ground_truth"], bool):
+        raise DatasetError(path, "has_ground_truth must be true or false")
+    description = data.get("description", "")
+    if description is None:
+        description = ""
+    if not isinstance(description, str):
+        raise DatasetError(path, "description must be a string")
+    return {
+        "name": data["name"],
+        "t_start_s": float(t0),
+        "T_world_body_initial": _initial_pose(path, data["T_world_body_initial"]),
+        "counts": {k: counts[k] for k in ("frames", "scans", "odometry")},
+        "has_ground_truth": data["has_ground_truth"],
+        "description": description,
+    }
+
+
+def _read_camera_csv(path: Path, root: Path, t_start_s: float) -> tuple[np.ndarray, list[Path]]:
+    _require_file(path, "camera index")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(path, f"cannot read ({exc})") from None
+    rows = [(n, row) for n, row in enumerate(csv.reader(io.StringIO(text)), start=1) if row]
+    if not rows:
+        raise DatasetError(path, f"empty: expected the header {','.join(CAMERA_HEADER)}")
+    if [c.strip() for c in rows[0][1]] != CAMERA_HEADER:
+        raise DatasetError(path, f"line {rows[0][0]}: header must be {','.join(CAMERA_HEADER)}, got {','.join(rows[0][1])}")
+    times, files = [], []
+    for position, (line_no, row) in enumerate(rows[1:]):
+        if len(row) != 3:
+            raise DatasetError(path, f"line {line_no}: expected 3 columns (index,t_s,file), got {len(row)}")
+        index_text, t_text, file_text = (c.strip() for c in row)
+        try:
+            index = int(index_text)
+        except ValueError:
+            raise DatasetError(path, f"line {line_no}: index is not an integer: {index_text!r}") from None
+        if index != position:
+            raise DatasetError(path, f"line {line_no}: index {index} out of order, expected {position}")
+        try:
+            t = float(t_text)
+        except ValueError:
+            raise DatasetError(path, f"line {line_no}: t_s is not a number: {t_text!r}") from None
+        if not file_text:
+            raise DatasetError(path, f"line {line_no}: empty file name")
+        image_path = root / file_text
+        if not image_path.is_file():
+            raise DatasetError(image_path, f"image listed in {CAMERA_CSV} (line {line_no}) not found")
+        if not math.isfinite(t):
+            raise DatasetError(path, f"line {line_no}: t_s is NaN or infinite")
+        if times and not t > times[-1]:
+            raise DatasetError(
+                path, f"line {line_no}: frame {position} time {t!r} is not after the previous {times[-1]!r} "
+                "(times must be strictly increasing)"
+            )
+        times.append(t)
+        files.append(image_path)
+    t_s = np.array(times, dtype=np.float64)
+    _check_times(path, "t_s", t_s, t_start_s)
+    return t_s, files
+
+
+def _decode_quietly(data: np.ndarray) -> np.ndarray | None:
+    """``cv2.imdecode`` without OpenCV logging its own complaints about a broken file to stderr."""
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        return cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+
+
+def _read_image(path: Path) -> np.ndarray:
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read image ({exc.strerror or exc})") from None
+    image = _decode_quietly(data) if data.size else None
+    if image is None:
+        raise DatasetError(path, "unreadable or corrupt PNG image")
+    _check_image(path, image)
+    return image
+
+
+class FolderSequence(Sequence):
+    """A dataset folder (see the module docstring), validated on open; images are read lazily."""
+
+    def __init__(self, path: str | Path):
+        root = Path(path)
+        if not root.is_dir():
+            raise DatasetError(root, "dataset folder not found" if not root.exists() else "not a folder")
+        self.path = root
+        meta = _read_metadata(root / DATASET_YAML)
+        self.name = meta["name"]
+        self.description: str = meta["description"]
+        self._t_start_s: float = meta["t_start_s"]
+        self._T_world_body_initial: np.ndarray = meta["T_world_body_initial"]
+        counts = meta["counts"]
+
+        rig_path = root / RIG_YAML
+        _require_file(rig_path, "rig file")
+        self._rig: SensorRig = load_rig(rig_path)  # its ConfigError names the file
+        beam_count = self._rig.laser.beams.count
+
+        camera_path = root / CAMERA_CSV
+        self._frame_t_s, self._frame_files = _read_camera_csv(camera_path, root, self._t_start_s)
+
+        laser_path = root / LASER_NPZ
+        _require_file(laser_path, "laser scans")
+        laser = _load_npz(laser_path, ("t_s", "ranges_m"))
+        _check_laser(laser_path, laser["t_s"], laser["ranges_m"], beam_count, self._t_start_s)
+        self._scan_t_s = laser["t_s"].astype(np.float64)
+        self._scan_ranges_m = laser["ranges_m"].astype(np.float32)
+
+        odometry_path = root / ODOMETRY_NPZ
+        self._has_odometry = odometry_path.exists()
+        if self._has_odometry:
+            _require_file(odometry_path, "odometry")
+            odo = _load_npz(odometry_path, ("t_s", "t_prev_s", "T_prev_curr", "covariance"))
+            _check_odometry(
+                odometry_path, odo["t_s"], odo["t_prev_s"], odo["T_prev_curr"], odo["covariance"], self._t_start_s
+            )
+            self._odo = {k: v.astype(np.float64) for k, v in odo.items()}
+        else:
+            if counts["odometry"]:
+                raise DatasetError(odometry_path, f"not found, but {DATASET_YAML} counts {counts['odometry']} odometry events")
+            self._odo = {
+                "t_s": np.zeros(0),
+                "t_prev_s": np.zeros(0),
+                "T_prev_curr": np.zeros((0, 4, 4)),
+                "covariance": np.zeros((0, 6, 6)),
+            }
+
+        for key, n, source in (
+            ("frames", len(self._frame_t_s), camera_path),
+            ("scans", len(self._scan_t_s), laser_path),
+            ("odometry", len(self._odo["t_s"]), odometry_path),
+        ):
+            if counts[key] != n:
+                raise DatasetError(source, f"holds {n} {key} but {DATASET_YAML} counts {counts[key]}")
+
+        self._ground_truth: GroundTruth | None = None
+        if meta["has_ground_truth"]:
+            trajectory = read_tum(root / GT_TRAJECTORY)
+            elevation_path = root / GT_ELEVATION
+            elevation = read_elevation(elevation_path) if elevation_path.exists() else None
+            self._ground_truth = GroundTruth(trajectory, elevation)
+
+        times = np.concatenate([self._odo["t_s"], self._scan_t_s, self._frame_t_s])
+        kinds = np.concatenate(
+            [
+                np.full(len(self._odo["t_s"]), _ODOMETRY),
+                np.full(len(self._scan_t_s), _LASER),
+                np.full(len(self._frame_t_s), _CAMERA),
+            ]
+        )
+        indices = np.concatenate(
+            [np.arange(len(self._odo["t_s"])), np.arange(len(self._scan_t_s)), np.arange(len(self._frame_t_s))]
+        )
+        order = np.lexsort((indices, kinds, times))
+        self._order = list(zip(kinds[order].tolist(), indices[order].tolist()))
+
+    @property
+    def rig(self) -> SensorRig:
+        return self._rig
+
+    @property
+    def t_start_s(self) -> float:
+        return self._t_start_s
+
+    @property
+    def T_world_body_initial(self) -> np.ndarray:
+        return self._T_world_body_initial.copy()
+
+    @property
+    def ground_truth(self) -> GroundTruth | None:
+        return self._ground_truth
+
+    @property
+    def has_odometry(self) -> bool:
+        return self._has_odometry
+
+    @property
+    def n_frames(self) -> int:
+        return len(self._frame_t_s)
+
+    @property
+    def n_scans(self) -> int:
+        return len(self._scan_t_s)
+
+    @property
+    def n_odometry(self) -> int:
+        return len(self._odo["t_s"])
+
+    def event_count(self) -> int:
+        return self.n_frames + self.n_scans + self.n_odometry
+
+    def events(self) -> Iterator[Event]:
+        """Every event in time order (odometry, then laser, then camera at equal times); images read lazily.
+
+        Raises :class:`DatasetError` naming the image when a PNG is missing or cannot be decoded.
+        """
+        odo = self._odo
+        for kind, i in self._order:
+            if kind == _ODOMETRY:
+                yield Odometry(
+                    float(odo["t_s"][i]),
+                    float(odo["t_prev_s"][i]),
+                    odo["T_prev_curr"][i].copy(),
+                    odo["covariance"][i].copy(),
+                    i,
+                )
+            elif kind == _LASER:
+                yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges_m[i].copy(), i)
+            else:
+                yield CameraFrame(float(self._frame_t_s[i]), _read_image(self._frame_files[i]), i)
+
+    def __repr__(self) -> str:
+        return (
+            f"FolderSequence({str(self.path)!r}, name={self.name!r}, frames={self.n_frames}, "
+            f"scans={self.n_scans}, odometry={self.n_odometry})"
+        )
+
+
+def open_folder_dataset(path: str | Path) -> FolderSequence:
+    """Open and validate a dataset folder; same as ``FolderSequence(path)``."""
+    return FolderSequence(path)
+
+
+# ----------------------------------------------------------------------------------------------
+# writing
+
+
+def _float_list(T: np.ndarray) -> list:
+    return [[float(x) for x in row] for row in np.asarray(T, dtype=float)]
+
+
+def write_folder_dataset(
+    sequence: Sequence,
+    out_dir: str | Path,
+    progress_desc: str = "writing dataset",
+    description: str | None = None,
+) -> Path:
+    """Write ``sequence`` as a dataset folder at ``out_dir`` and return its path.
+
+    ``sequence.events()`` is consumed once; images are written as they arrive, never held together.
+    ``out_dir`` must not exist or be empty. ``description`` defaults to the sequence's
+    ``description`` attribute, if it has one. Ranges are stored as float32 and the ground-truth
+    elevation as float32, so those round-trip exactly only if they already are float32.
+    ``dataset.yaml`` is written last. Raises :class:`DatasetError` naming the file concerned if the
+    sequence breaks the format (for example times that do not increase within a stream, or scans
+    with the wrong number of beams).
+    """
+    out = Path(out_dir)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise DatasetError(out, "output folder exists and is not empty")
+    if description is None:
+        description = getattr(sequence, "description", "") or ""
+    if not isinstance(description, str):
+        raise DatasetError(out / DATASET_YAML, "description must be a string")
+
+    rig = sequence.rig
+    t_start_s = float(sequence.t_start_s)
+    if not math.isfinite(t_start_s):
+        raise DatasetError(out / DATASET_YAML, f"t_start_s must be finite, got {t_start_s!r}")
+    T_world_body_initial = _initial_pose(out / DATASET_YAML, sequence.T_world_body_initial)
+    beam_count = rig.laser.beams.count
+
+    images_dir = out / IMAGES_DIR
+    try:
+        images_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DatasetError(images_dir, f"cannot create folder ({exc.strerror or exc})") from None
+    _write(out / RIG_YAML, lambda p: save_rig(rig, p))
+
+    frame_t, frame_files = [], []
+    scan_t, scan_ranges = [], []
+    odo_t, odo_t_prev, odo_T, odo_cov = [], [], [], []
+    camera_path, laser_path, odometry_path = out / CAMERA_CSV, out / LASER_NPZ, out / ODOMETRY_NPZ
+    for event in progress(sequence.events(), total=sequence.event_count(), desc=progress_desc, unit="event"):
+        if isinstance(event, CameraFrame):
+            index = len(frame_t)
+            t = float(event.t_s)
+            if not math.isfinite(t):
+                raise DatasetError(camera_path, f"frame {index}: time is NaN or infinite")
+            if frame_t and not t > frame_t[-1]:
+                raise DatasetError(camera_path, f"frame {index}: time {t!r} is not after the previous {frame_t[-1]!r}")
+            if t < t_start_s:
+                raise DatasetError(camera_path, f"frame {index}: time {t!r} is before t_start_s = {t_start_s!r}")
+            name = f"{IMAGES_DIR}/{index:06d}.png"
+            image = np.ascontiguousarray(event.image)
+            _check_image(out / name, image)
+            if not cv2.imwrite(str(out / name), image):
+                raise DatasetError(out / name, "cannot write PNG image")
+            frame_t.append(t)
+            frame_files.append(name)
+        elif isinstance(event, LaserScan):
+            ranges = np.asarray(event.ranges_m)
+            if ranges.shape != (beam_count,):
+                raise DatasetError(
+                    laser_path, f"scan {len(scan_t)}: {ranges.shape} ranges, the rig's laser has {beam_count} beams"
+                )
+            scan_t.append(float(event.t_s))
+            scan_ranges.append(ranges.astype(np.float32))
+        elif isinstance(event, Odometry):
+            odo_t.append(float(event.t_s))
+            odo_t_prev.append(float(event.t_prev_s))
+            odo_T.append(np.asarray(event.T_prev_curr, dtype=np.float64))
+            odo_cov.append(np.asarray(event.covariance, dtype=np.float64))
+        else:
+            raise DatasetError(out, f"unknown event type {type(event).__name__}")
+
+    # camera.csv
+    lines = [",".join(CAMERA_HEADER)]
+    lines.extend(f"{i},{t!r},{name}" for i, (t, name) in enumerate(zip(frame_t, frame_files)))
+    _write(camera_path, lambda p: p.write_text("\n".join(lines) + "\n", encoding="utf-8"))
+
+    # laser.npz
+    laser_t = np.array(scan_t, dtype=np.float64)
+    laser_ranges = np.stack(scan_ranges) if scan_ranges else np.zeros((0, beam_count), dtype=np.float32)
+    _check_laser(laser_path, laser_t, laser_ranges, beam_count, t_start_s)
+    _write(laser_path, lambda p: np.savez(p, t_s=laser_t, ranges_m=laser_ranges))
+
+    # odometry.npz
+    if sequence.has_odometry or odo_t:
+        odometry = {
+            "t_s": np.array(odo_t, dtype=np.float64),
+            "t_prev_s": np.array(odo_t_prev, dtype=np.float64),
+            "T_prev_curr": _stack_checked(odometry_path, "T_prev_curr", odo_T, (4, 4)),
+            "covariance": _stack_checked(odometry_path, "covariance", odo_cov, (6, 6)),
+        }
+        _check_odometry(odometry_path, **odometry, t_start_s=t_start_s)
+        _write(odometry_path, lambda p: np.savez(p, **odometry))
+
+    # ground truth
+    ground_truth = sequence.ground_truth
+    if ground_truth is not None:
+        _write(out / GROUND_TRUTH_DIR, lambda p: p.mkdir(exist_ok=True))
+        write_tum(out / GT_TRAJECTORY, ground_truth.trajectory)
+        if ground_truth.elevation is not None:
+            write_elevation(out / GT_ELEVATION, ground_truth.elevation)
+
+    metadata = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "name": str(sequence.name),
+        "t_start_s": t_start_s,
+        "T_world_body_initial": _float_list(T_world_body_initial),
+        "counts": {"frames": len(frame_t), "scans": len(scan_t), "odometry": len(odo_t)},
+        "has_ground_truth": ground_truth is not None,
+        "description": description,
+    }
+    text = yaml.safe_dump(metadata, sort_keys=False, default_flow_style=None, allow_unicode=True)
+    _write(out / DATASET_YAML, lambda p: p.write_text(text, encoding="utf-8"))
+    return out
+
+
+def _stack_checked(path: Path, name: str, items: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
+    for i, a in enumerate(items):
+        if a.shape != shape:
+            raise DatasetError(path, f"{name}[{i}] has shape {a.shape}, expected {shape}")
+    return np.stack(items) if items else np.zeros((0,) + shape)
+
+
+def _write(path: Path, write) -> None:
+    """Run ``write(path)``, turning an OS error into a :class:`DatasetError` naming ``path``."""
+    try:
+        write(path)
+    except OSError as exc:
+        raise DatasetError(path, f"cannot write ({exc.strerror or exc})") from None

@@ -1,0 +1,38 @@
+"""The package's exception hierarchy.
+
+Library code raises these; only the command line turns them into a one-line message and a
+non-zero exit code.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class DemGraphError(Exception):
+    """Base class of every error dem_graph raises on purpose."""
+
+
+class ConfigError(DemGraphError):
+    """A configuration or rig value is invalid."""
+
+    def __init__(self, problem: str, source: str | Path | None = None):
+        self.source = None if source is None else str(source)
+        self.problem = problem
+        super().__init__(problem if source is None else f"{source}: {problem}")
+
+
+class DatasetError(DemGraphError):
+    """A dataset file is missing, corrupt or inconsistent. The message names the file."""
+
+    def __init__(self, path: str | Path, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{path}: {problem}")
+
+
+class MissingDependencyError(DemGraphError):
+    """An optional dependency is not installed."""
+
+    def __init__(self, module: str, install_hint: str):
+        super().__init__(f"the optional dependency '{module}' is missing: {install_hint}")

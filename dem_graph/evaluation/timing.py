@@ -1,0 +1,52 @@
+"""Timing statistics, and the table layout every benchmark prints."""
+
+from __future__ import annotations
+
+import platform
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TimingStats:
+    n: int
+    median_ms: float
+    p95_ms: float
+    mean_ms: float
+
+    @classmethod
+    def from_seconds(cls, samples_s) -> TimingStats:
+        a = 1000.0 * np.asarray(samples_s, dtype=float)
+        if a.size == 0:
+            return cls(0, float("nan"), float("nan"), float("nan"))
+        return cls(int(a.size), float(np.median(a)), float(np.percentile(a, 95)), float(a.mean()))
+
+
+def machine_description() -> str:
+    import os
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
+
+
+def format_table(headers: list[str], rows: list[list], title: str = "") -> str:
+    """A plain-text table with right-aligned columns."""
+    cells = [[str(h) for h in headers]] + [[c if isinstance(c, str) else f"{c:.4g}" if isinstance(c, float) else str(c) for c in row] for row in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
+    lines = []
+    if title:
+        lines.append(title)
+    lines.append("  ".join(h.rjust(w) for h, w in zip(cells[0], widths)))
+    lines.append("  ".join("-" * w for w in widths))
+    for r in cells[1:]:
+        lines.append("  ".join(c.rjust(w) for c, w in zip(r, widths)))
+    return "\n".join(lines)

@@ -1,0 +1,1 @@
+"""Pictures for people: previews, maps and plots (matplotlib, Agg backend, files only)."""
