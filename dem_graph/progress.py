@@ -23,4 +23,5 @@ def progress(iterable: Iterable[T], total: int | None = None, desc: str = "", un
     if not _enabled:
         yield from iterable
         return
-    yield from tqdm(iterable, total=total, desc=desc, unit=unit, leave=False, dynamic_ncols=True)
+    # disable=None: no bar when stderr is not a terminal (CI logs, pipes)
+    yield from tqdm(iterable, total=total, desc=desc, unit=unit, leave=False, dynamic_ncols=True, disable=None, mininterval=0.5)

@@ -11,6 +11,7 @@ import pytest
 import yaml
 
 from dem_graph import progress as progress_module
+from dem_graph.datasets import folder as folder_module
 from dem_graph.datasets.base import GroundTruth, Sequence
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.datasets.folder import FolderSequence, open_folder_dataset, write_folder_dataset
@@ -208,19 +209,34 @@ def test_events_merge_order_at_equal_times(written):
     assert len(list(FolderSequence(written).events())) == len(events) == 19
 
 
-def test_writer_streams_images(tmp_path):
+def test_writer_streams_images(tmp_path, monkeypatch):
     source = TinySequence()
     out = tmp_path / "ds"
     seen = []
 
+    lag = 2  # frames the background writer may hold
+
     def check_written(event):
         if isinstance(event, CameraFrame):
-            assert (out / "images" / f"{event.index:06d}.png").is_file()  # written before the next event is pulled
+            # bounded memory: a frame is on disk at most `lag` + 1 frames after it was produced
+            if event.index > lag:
+                assert (out / "images" / f"{event.index - lag - 1:06d}.png").is_file()
             seen.append(event.index)
 
     source.on_event = check_written
+    monkeypatch.setattr(folder_module._BackgroundPngWriter, "__init__", _writer_with_lag(lag))
     write_folder_dataset(source, out)
     assert seen == list(range(6))
+    assert all((out / "images" / f"{k:06d}.png").is_file() for k in range(6))
+
+
+def _writer_with_lag(lag):
+    original = folder_module._BackgroundPngWriter.__init__
+
+    def init(self, max_pending=lag, compression=1):
+        original(self, max_pending=lag, compression=compression)
+
+    return init
 
 
 def test_without_odometry_and_ground_truth(tmp_path):

@@ -504,38 +504,41 @@ def write_folder_dataset(
     scan_t, scan_ranges = [], []
     odo_t, odo_t_prev, odo_T, odo_cov = [], [], [], []
     camera_path, laser_path, odometry_path = out / CAMERA_CSV, out / LASER_NPZ, out / ODOMETRY_NPZ
-    for event in progress(sequence.events(), total=sequence.event_count(), desc=progress_desc, unit="event"):
-        if isinstance(event, CameraFrame):
-            index = len(frame_t)
-            t = float(event.t_s)
-            if not math.isfinite(t):
-                raise DatasetError(camera_path, f"frame {index}: time is NaN or infinite")
-            if frame_t and not t > frame_t[-1]:
-                raise DatasetError(camera_path, f"frame {index}: time {t!r} is not after the previous {frame_t[-1]!r}")
-            if t < t_start_s:
-                raise DatasetError(camera_path, f"frame {index}: time {t!r} is before t_start_s = {t_start_s!r}")
-            name = f"{IMAGES_DIR}/{index:06d}.png"
-            image = np.ascontiguousarray(event.image)
-            _check_image(out / name, image)
-            if not cv2.imwrite(str(out / name), image):
-                raise DatasetError(out / name, "cannot write PNG image")
-            frame_t.append(t)
-            frame_files.append(name)
-        elif isinstance(event, LaserScan):
-            ranges = np.asarray(event.ranges_m)
-            if ranges.shape != (beam_count,):
-                raise DatasetError(
-                    laser_path, f"scan {len(scan_t)}: {ranges.shape} ranges, the rig's laser has {beam_count} beams"
-                )
-            scan_t.append(float(event.t_s))
-            scan_ranges.append(ranges.astype(np.float32))
-        elif isinstance(event, Odometry):
-            odo_t.append(float(event.t_s))
-            odo_t_prev.append(float(event.t_prev_s))
-            odo_T.append(np.asarray(event.T_prev_curr, dtype=np.float64))
-            odo_cov.append(np.asarray(event.covariance, dtype=np.float64))
-        else:
-            raise DatasetError(out, f"unknown event type {type(event).__name__}")
+    image_writer = _BackgroundPngWriter()
+    try:
+        for event in progress(sequence.events(), total=sequence.event_count(), desc=progress_desc, unit="event"):
+            if isinstance(event, CameraFrame):
+                index = len(frame_t)
+                t = float(event.t_s)
+                if not math.isfinite(t):
+                    raise DatasetError(camera_path, f"frame {index}: time is NaN or infinite")
+                if frame_t and not t > frame_t[-1]:
+                    raise DatasetError(camera_path, f"frame {index}: time {t!r} is not after the previous {frame_t[-1]!r}")
+                if t < t_start_s:
+                    raise DatasetError(camera_path, f"frame {index}: time {t!r} is before t_start_s = {t_start_s!r}")
+                name = f"{IMAGES_DIR}/{index:06d}.png"
+                image = np.ascontiguousarray(event.image)
+                _check_image(out / name, image)
+                image_writer.submit(out / name, image)
+                frame_t.append(t)
+                frame_files.append(name)
+            elif isinstance(event, LaserScan):
+                ranges = np.asarray(event.ranges_m)
+                if ranges.shape != (beam_count,):
+                    raise DatasetError(
+                        laser_path, f"scan {len(scan_t)}: {ranges.shape} ranges, the rig's laser has {beam_count} beams"
+                    )
+                scan_t.append(float(event.t_s))
+                scan_ranges.append(ranges.astype(np.float32))
+            elif isinstance(event, Odometry):
+                odo_t.append(float(event.t_s))
+                odo_t_prev.append(float(event.t_prev_s))
+                odo_T.append(np.asarray(event.T_prev_curr, dtype=np.float64))
+                odo_cov.append(np.asarray(event.covariance, dtype=np.float64))
+            else:
+                raise DatasetError(out, f"unknown event type {type(event).__name__}")
+    finally:
+        image_writer.close()
 
     # camera.csv
     lines = [",".join(CAMERA_HEADER)]
@@ -587,6 +590,39 @@ def _stack_checked(path: Path, name: str, items: list[np.ndarray], shape: tuple[
         if a.shape != shape:
             raise DatasetError(path, f"{name}[{i}] has shape {a.shape}, expected {shape}")
     return np.stack(items) if items else np.zeros((0,) + shape)
+
+
+class _BackgroundPngWriter:
+    """Encodes and writes PNG images on a worker thread (OpenCV releases the GIL), a few frames behind."""
+
+    def __init__(self, max_pending: int = 8, compression: int = 1):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="png-writer")
+        self._pending: list = []
+        self._max_pending = max_pending
+        self._params = [cv2.IMWRITE_PNG_COMPRESSION, compression]
+
+    def submit(self, path: Path, image: np.ndarray) -> None:
+        self._pending.append((path, self._pool.submit(cv2.imwrite, str(path), image, self._params)))
+        while len(self._pending) > self._max_pending:
+            self._check(*self._pending.pop(0))
+
+    @staticmethod
+    def _check(path: Path, future) -> None:
+        try:
+            ok = future.result()
+        except cv2.error as exc:
+            raise DatasetError(path, f"cannot write PNG image ({str(exc).strip().splitlines()[-1]})") from None
+        if not ok:
+            raise DatasetError(path, "cannot write PNG image")
+
+    def close(self) -> None:
+        try:
+            while self._pending:
+                self._check(*self._pending.pop(0))
+        finally:
+            self._pool.shutdown(wait=True)
 
 
 def _write(path: Path, write) -> None:

@@ -65,6 +65,10 @@ class TerrainScene:
         rays = np.empty((len(directions_world), 6), dtype=np.float32)
         rays[:, :3] = origins_world
         rays[:, 3:] = directions_world
+        return self.cast_packed(rays)
+
+    def cast_packed(self, rays: np.ndarray) -> RayHits:
+        """Cast (N,6) float32 rays ``[origin, unit direction]`` (world frame)."""
         result = self.scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
         t_hit = result["t_hit"].numpy()
         if self.markers:

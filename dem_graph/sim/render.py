@@ -29,23 +29,28 @@ class CameraRenderer:
         r2 = (u[None, :] ** 2 + v[:, None] ** 2) / 0.5
         self._vignette = (1.0 - lighting.vignetting * r2).astype(np.float32).ravel()
         self._noise_bank: np.ndarray | None = None
+        self._rays = np.empty((len(self._bearings_cam), 6), dtype=np.float32)  # reused every frame
 
     def render(self, T_world_cam: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
         """An (H,W) uint8 image from camera pose ``T_world_cam``; noise from ``rng`` (none if ``None``)."""
         light = self.lighting
         R = T_world_cam[:3, :3].astype(np.float32)
-        dirs = self._bearings_cam @ R.T
         origin = T_world_cam[:3, 3].astype(np.float32)
-        hits = self.scene.cast(origin, dirs)
+        rays = self._rays
+        rays[:, :3] = origin
+        np.matmul(self._bearings_cam, R.T, out=rays[:, 3:])
+        dirs = rays[:, 3:]
+        hits = self.scene.cast_packed(rays)
         hit = hits.object_id >= 0
         # work on every pixel (sky pixels get t = 0 and are overwritten): cheaper than gathering subsets
         t = np.where(hit, hits.t_hit_m, np.float32(0.0))
         n = hits.normals_world
-        p = origin + t[:, None] * dirs
-        cos_view = np.abs(np.einsum("ij,ij->i", n, dirs))
+        cos_view = np.abs(n[:, 0] * dirs[:, 0] + n[:, 1] * dirs[:, 1] + n[:, 2] * dirs[:, 2])
         # footprint: geometric mean of the across (t*angle) and along (t*angle/cos) extents
         footprint = t * self._pixel_angle / np.sqrt(np.maximum(cos_view, 0.05))
-        albedo = self.texture.sample(p[:, 0], p[:, 1], footprint)
+        x = origin[0] + t * dirs[:, 0]
+        y = origin[1] + t * dirs[:, 1]
+        albedo = self.texture.sample(x, y, footprint)
         for k, marker in enumerate(self.scene.markers, start=1):
             albedo[hits.object_id == k] = marker.albedo
         sun = np.maximum(n @ self._sun_world, 0.0)
