@@ -107,3 +107,29 @@ def test_marker_appears_at_its_projection(marker_world):
     ring[r0 - 25 : r0 + 26, c0 - 25 : c0 + 26] = True
     ring &= ~mask
     assert image[mask].mean() > image[ring].mean() + 20
+
+
+def test_filtered_texture_does_not_shimmer():
+    """A camera moving by a fraction of a pixel footprint sees far ground change little when the
+    texture is filtered, and a lot when it is point-sampled (aliasing)."""
+    rig = default_rig()
+    grid = _plane_grid(size_m=60.0, res=0.1)
+    terrain = Terrain(grid, np.zeros(grid.geometry.shape, dtype=np.float32))
+    texture = GroundTexture.generate(TextureSpec(), terrain, np.random.default_rng(1))
+    scene = TerrainScene(grid)
+    cam = rig.camera_model
+    T0 = rig.T_body_cam.copy()
+    T1 = T0.copy()
+    T1[:3, 3] += [0.004, 0.003, 0.0]  # 5 mm: a small part of a far pixel's footprint (several cm)
+    # far ground: rows whose ground distance exceeds 12 m (footprint > 2 cm, i.e. > 2 texels)
+    dirs = cam.pixel_bearings() @ T0[:3, :3].T
+    t = scene.cast(T0[:3, 3], dirs).t_hit_m.reshape(cam.height_px, cam.width_px)
+    far = np.isfinite(t) & (t > 12.0) & (t < 25.0)
+    changes = {}
+    for filtered in (True, False):
+        r = CameraRenderer(scene, texture, cam, LightingSpec(), noise_sigma_dn=0.0, filter_texture=filtered)
+        a, b = r.render(T0).astype(float), r.render(T1).astype(float)
+        changes[filtered] = np.abs(a - b)[far].mean()
+    assert far.sum() > 5000
+    assert changes[True] < 0.35 * changes[False]
+    assert changes[True] < 1.5  # grey levels (measured 0.5)

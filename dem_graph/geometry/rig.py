@@ -14,7 +14,7 @@ import numpy as np
 import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-from dem_graph.config_types import Pose4x4, StrictModel
+from dem_graph.config_types import Pose4x4, StrictModel, format_validation_error
 from dem_graph.errors import ConfigError
 from dem_graph.geometry.camera import PinholeCamera
 from dem_graph.geometry.se3 import invert, make_pose, rotation_from_rpy
@@ -177,19 +177,11 @@ def default_rig() -> SensorRig:
     )
 
 
-def _format_validation_error(exc: ValidationError) -> str:
-    parts = []
-    for err in exc.errors():
-        loc = ".".join(str(x) for x in err["loc"]) or "(top level)"
-        parts.append(f"{loc}: {err['msg']}")
-    return "; ".join(parts)
-
-
 def rig_from_dict(data: dict, source: str | Path | None = None) -> SensorRig:
     try:
         return SensorRig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(f"invalid rig: {_format_validation_error(exc)}", source) from None
+        raise ConfigError(f"invalid rig: {format_validation_error(exc)}", source) from None
 
 
 def load_rig(path: str | Path) -> SensorRig:

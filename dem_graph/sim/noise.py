@@ -27,8 +27,17 @@ def smooth_noise(shape: tuple[int, int], cell_size: float, wavelength: float, rn
     )
     offset = int(round(1.5 * step))
     field = up[offset : offset + n_rows, offset : offset + n_cols]
-    std = float(field.std())
-    return (field - float(field.mean())) / (std if std > 0 else 1.0)
+    return _standardize(field)
+
+
+def _standardize(field: np.ndarray) -> np.ndarray:
+    """Zero mean, unit variance, in place; statistics from a subsample (the field is smooth and large)."""
+    stride = max(1, int(np.sqrt(field.size / 1e6)))
+    sample = field[::stride, ::stride]
+    mean, std = float(sample.mean()), float(sample.std())
+    field -= np.float32(mean)
+    field *= np.float32(1.0 / std if std > 0 else 1.0)
+    return field
 
 
 def fractal_noise(
@@ -41,11 +50,18 @@ def fractal_noise(
     """Sum of :func:`smooth_noise` octaves with amplitude ``wavelength ** exponent``, normalised to unit variance."""
     total = np.zeros(shape, dtype=np.float32)
     for w in wavelengths:
-        total += np.float32(w**exponent) * smooth_noise(shape, cell_size, w, rng)
-    std = float(total.std())
-    return total / (std if std > 0 else 1.0)
+        octave = smooth_noise(shape, cell_size, w, rng)
+        octave *= np.float32(w**exponent)
+        total += octave
+    return _standardize(total)
 
 
 def smoothstep(edge0: float, edge1: float, x: np.ndarray) -> np.ndarray:
-    t = np.clip((x - edge0) / (edge1 - edge0), 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
+    """0 below ``edge0``, 1 above ``edge1``, a cubic in between (float32, computed in place on a copy)."""
+    t = np.asarray(x, dtype=np.float32) - np.float32(edge0)
+    t *= np.float32(1.0 / (edge1 - edge0))
+    np.clip(t, 0.0, 1.0, out=t)
+    out = np.float32(3.0) - np.float32(2.0) * t
+    out *= t
+    out *= t
+    return out

@@ -13,12 +13,21 @@ from dem_graph.sim.texture import GroundTexture
 class CameraRenderer:
     """Renders grey images of a :class:`TerrainScene` seen by a :class:`PinholeCamera` (with its distortion)."""
 
-    def __init__(self, scene: TerrainScene, texture: GroundTexture, camera: PinholeCamera, lighting: LightingSpec, noise_sigma_dn: float):
+    def __init__(
+        self,
+        scene: TerrainScene,
+        texture: GroundTexture,
+        camera: PinholeCamera,
+        lighting: LightingSpec,
+        noise_sigma_dn: float,
+        filter_texture: bool = True,
+    ):
         self.scene = scene
         self.texture = texture
         self.camera = camera
         self.lighting = lighting
         self.noise_sigma_dn = noise_sigma_dn
+        self.filter_texture = filter_texture  # False: point-sample the finest level (aliases; for tests)
         self._bearings_cam = camera.pixel_bearings().astype(np.float32)
         # angular size of a pixel along its bearing: 1/f at the centre, scaled by the bearing's obliquity
         self._pixel_angle = (self._bearings_cam[:, 2] ** 2 / np.sqrt(camera.fx_px * camera.fy_px)).astype(np.float32)
@@ -48,6 +57,8 @@ class CameraRenderer:
         cos_view = np.abs(n[:, 0] * dirs[:, 0] + n[:, 1] * dirs[:, 1] + n[:, 2] * dirs[:, 2])
         # footprint: geometric mean of the across (t*angle) and along (t*angle/cos) extents
         footprint = t * self._pixel_angle / np.sqrt(np.maximum(cos_view, 0.05))
+        if not self.filter_texture:
+            footprint[:] = 0.0
         x = origin[0] + t * dirs[:, 0]
         y = origin[1] + t * dirs[:, 1]
         albedo = self.texture.sample(x, y, footprint)

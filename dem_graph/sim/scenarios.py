@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import numpy as np
+from pydantic import ValidationError
 
+from dem_graph.config_types import format_validation_error
 from dem_graph.errors import ConfigError
 from dem_graph.geometry.rig import default_rig
 from dem_graph.sim.config import PathSpec, ScenarioConfig, TerrainSpec
@@ -76,15 +77,15 @@ def scenario(name: str, seed: int | None = None, length_m: float | None = None, 
     if with_odometry is not None:
         update["with_odometry"] = with_odometry
     if speed_mps is not None:
-        update["path"] = config.path.model_copy(update={"speed_mps": speed_mps})
+        update["path"] = {**config.path.model_dump(), "speed_mps": speed_mps}
     try:
         return ScenarioConfig.model_validate({**config.model_dump(), **update}) if update else config
-    except Exception as exc:
-        raise ConfigError(f"invalid scenario override: {exc}") from None
+    except ValidationError as exc:
+        raise ConfigError(f"invalid scenario '{name}': {format_validation_error(exc)}") from None
 
 
 def describe_scenarios() -> dict[str, str]:
     return {name: (fn.__doc__ or "").strip().splitlines()[0] for name, fn in SCENARIOS.items()}
 
 
-__all__ = ["DEFAULT_SCENARIO", "SCENARIOS", "describe_scenarios", "scenario", "np"]
+__all__ = ["DEFAULT_SCENARIO", "SCENARIOS", "describe_scenarios", "scenario"]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter
 from scipy.spatial import cKDTree
@@ -38,6 +39,23 @@ def path_frame(path: DrivenPath, x_m: np.ndarray, y_m: np.ndarray) -> tuple[np.n
     d = np.stack([x_m.ravel(), y_m.ravel()], axis=1) - xy[idx]
     lateral = -np.sin(heading[idx]) * d[:, 0] + np.cos(heading[idx]) * d[:, 1]
     return s[idx].reshape(x_m.shape), lateral.reshape(x_m.shape)
+
+
+def _path_frame_on_grid(path: DrivenPath, geometry: GridGeometry, coarsening: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`path_frame` at every cell, computed on a grid ``coarsening`` times coarser and interpolated
+    (both are smooth near the path, where ruts and ditch need them)."""
+    coarse = GridGeometry(geometry.x_min_m, geometry.y_max_m, geometry.resolution_m * coarsening, -(-geometry.n_rows // coarsening) + 1, -(-geometry.n_cols // coarsening) + 1)
+    Xc, Yc = coarse.cell_centers_xy()
+    s_c, lat_c = path_frame(path, Xc, Yc)
+    # fine cell centres in coarse fractional indices
+    X, Y = geometry.cell_center_x_m(), geometry.cell_center_y_m()
+    rows, cols = coarse.fractional_index(np.zeros_like(Y), Y)[0], coarse.fractional_index(X, np.zeros_like(X))[1]
+    map_x = np.broadcast_to(cols.astype(np.float32)[None, :], geometry.shape)
+    map_y = np.broadcast_to(rows.astype(np.float32)[:, None], geometry.shape)
+    out = []
+    for a in (s_c, lat_c):
+        out.append(cv2.remap(a.astype(np.float32), np.ascontiguousarray(map_x), np.ascontiguousarray(map_y), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64))
+    return out[0], out[1]
 
 
 def _analytic_heights(spec: TerrainSpec, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
@@ -88,7 +106,7 @@ def generate_terrain(spec: TerrainSpec, path: DrivenPath, rng: np.random.Generat
     z += spec.slope_percent / 100.0 * (np.cos(a) * X + np.sin(a) * Y)
     z += spec.roughness_m * smooth_noise(geometry.shape, res, spec.roughness_wavelength_m, rng)
 
-    s_near, lateral = path_frame(path, X, Y)
+    s_near, lateral = _path_frame_on_grid(path, geometry)
     area_100m2 = (geometry.x_max_m - geometry.x_min_m) * (geometry.y_max_m - geometry.y_min_m) / 100.0
 
     # ruts: two grooves where the wheels run (the track is used by the vehicle every day)

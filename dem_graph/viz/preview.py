@@ -11,13 +11,13 @@ from dem_graph.datasets.events import CameraFrame, LaserScan
 from dem_graph.geometry.se3 import invert, transform_points
 
 
-def _laser_points_world(sequence: Sequence, scans: list[LaserScan]) -> np.ndarray:
-    """Every return of ``scans`` in the world frame, placed with the ground-truth poses."""
+def _laser_points_world(sequence: Sequence, scans: list[LaserScan], max_range_m: float = np.inf) -> np.ndarray:
+    """The returns of ``scans`` (up to ``max_range_m``) in the world frame, placed with the ground-truth poses."""
     rig, gt = sequence.rig, sequence.ground_truth.trajectory
     dirs = rig.laser.beam_directions()
     points = []
     for scan in scans:
-        ok = scan.valid(rig.laser.range_min_m, rig.laser.range_max_m)
+        ok = scan.valid(rig.laser.range_min_m, min(rig.laser.range_max_m, max_range_m))
         p_laser = dirs[ok] * scan.ranges_m[ok, None]
         points.append(transform_points(gt.at(scan.t_s) @ rig.T_body_laser, p_laser))
     return np.concatenate(points) if points else np.zeros((0, 3))
@@ -55,8 +55,8 @@ def dataset_preview(sequence: Sequence, out_png: str | Path, frame: CameraFrame,
     if gt is not None:
         ax_map.plot(xy[:, 0], xy[:, 1], color="black", lw=1.5, label="vehicle path (ground truth)")
         ax_map.plot(*xy[0], "o", color="lime", mec="black", ms=8, label="start")
-        pts = _laser_points_world(sequence, scans[:: max(1, len(scans) // 400)])
-        ax_map.scatter(pts[:, 0], pts[:, 1], s=0.3, c="red", alpha=0.5, label="laser returns", rasterized=True)
+        pts = _laser_points_world(sequence, scans[:: max(1, len(scans) // 300)], max_range_m=8.0)
+        ax_map.scatter(pts[:, 0], pts[:, 1], s=0.2, c="red", alpha=0.35, label="laser returns within 8 m", rasterized=True)
         ax_map.legend(loc="upper right", fontsize=8)
         pad = 6.0
         ax_map.set_xlim(xy[:, 0].min() - pad, xy[:, 0].max() + pad)
