@@ -17,6 +17,9 @@ from dem_graph.sim.noise import fractal_noise, smooth_noise, smoothstep
 from dem_graph.sim.terrain import Terrain
 
 
+_SCALE = 65535.0
+
+
 class GroundTexture:
     """Reflectance in [0, 1] of the ground at world (x, y), filtered over a footprint."""
 
@@ -49,11 +52,12 @@ class GroundTexture:
         cover = cv2.resize(terrain.stone_cover, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
         stone = 0.55 + c * 0.08 * smooth_noise(shape, r, 0.03, rng)
         albedo += cover * (stone - albedo)
-        albedo = np.clip(albedo, 0.03, 0.97).astype(np.float32)
+        np.clip(albedo, 0.03, 0.97, out=albedo)
         levels = [albedo]
         while min(levels[-1].shape) > 8:
             levels.append(cv2.pyrDown(levels[-1]))
-        return cls(levels, geometry)
+        # stored as 16-bit fixed point: half the memory traffic of float32, far finer than 8-bit grey levels
+        return cls([np.rint(level * _SCALE).astype(np.uint16) for level in levels], geometry)
 
     def sample(self, x_m: np.ndarray, y_m: np.ndarray, footprint_m: np.ndarray) -> np.ndarray:
         """Reflectance at world points, averaged over a ground footprint of ``footprint_m`` (1-D arrays)."""
@@ -86,4 +90,4 @@ class GroundTexture:
         map_x[:n] = col0 * scale
         map_y[:n] = row0 * scale
         out = cv2.remap(self.levels[level], map_x.reshape(rows, width), map_y.reshape(rows, width), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        return out.ravel()[:n]
+        return out.ravel()[:n].astype(np.float32) * np.float32(1.0 / _SCALE)
