@@ -107,13 +107,20 @@ class OdometrySpec(StrictModel):
     sigma_roll_pitch_rad_per_sqrt_m: float = Field(np.radians(1.0), ge=0, description="roll and pitch noise, rad per sqrt(m)")
     min_distance_m: float = Field(0.01, gt=0, description="distance floor for the noise model (standing still), m")
 
-    def increment_covariance(self, distance_m: float) -> np.ndarray:
-        """6x6 covariance of one increment over ``distance_m``, gtsam order [rot xyz, trans xyz], body frame."""
+    def white_noise_covariance(self, distance_m: float) -> np.ndarray:
+        """6x6 covariance of the independent (white) part of one increment over ``distance_m``,
+        gtsam order [rot xyz, trans xyz], body frame."""
         d = max(float(distance_m), self.min_distance_m)
         rp, yaw = self.sigma_roll_pitch_rad_per_sqrt_m**2 * d, self.sigma_yaw_rad_per_sqrt_m**2 * d
-        fwd = self.sigma_forward_m_per_sqrt_m**2 * d + (self.sigma_scale * d) ** 2
+        fwd = self.sigma_forward_m_per_sqrt_m**2 * d
         lat, vert = self.sigma_lateral_m_per_sqrt_m**2 * d, self.sigma_vertical_m_per_sqrt_m**2 * d
         return np.diag([rp, rp, yaw, fwd, lat, vert])
+
+    def increment_covariance(self, distance_m: float) -> np.ndarray:
+        """6x6 covariance of one increment: the white part plus the slip (scale) error along x."""
+        cov = self.white_noise_covariance(distance_m)
+        cov[3, 3] += (self.sigma_scale * max(float(distance_m), self.min_distance_m)) ** 2
+        return cov
 
 
 class SensorRig(StrictModel):

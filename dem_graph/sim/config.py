@@ -5,7 +5,6 @@ Every field has a default, a unit in its name or description, and is validated o
 
 from __future__ import annotations
 
-import numpy as np
 from pydantic import Field, model_validator
 
 from dem_graph.config_types import StrictModel

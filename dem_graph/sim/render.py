@@ -54,7 +54,7 @@ class CameraRenderer:
         # work on every pixel (sky pixels get t = 0 and are overwritten): cheaper than gathering subsets
         t = np.where(hit, hits.t_hit_m, np.float32(0.0))
         n = hits.normals_world
-        cos_view = np.abs(n[:, 0] * dirs[:, 0] + n[:, 1] * dirs[:, 1] + n[:, 2] * dirs[:, 2])
+        cos_view = np.abs(np.einsum("ij,ij->i", n, dirs))
         # footprint: geometric mean of the across (t*angle) and along (t*angle/cos) extents
         footprint = t * self._pixel_angle / np.sqrt(np.maximum(cos_view, 0.05))
         if not self.filter_texture:

@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from dem_graph.datasets.base import GroundTruth, Sequence
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
@@ -15,12 +16,12 @@ from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.se3 import invert
 from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.sim.config import ScenarioConfig
+from dem_graph.sim.laser import cast_scan
 from dem_graph.sim.raycast import TerrainScene
 from dem_graph.sim.render import CameraRenderer
 from dem_graph.sim.terrain import Terrain, contact_surface, generate_terrain
 from dem_graph.sim.texture import GroundTexture
 from dem_graph.sim.vehicle import DrivenPath, SpeedProfile, VehicleMotion, generate_path
-from dem_graph.sim.laser import cast_scan
 
 log = logging.getLogger(__name__)
 
@@ -150,15 +151,12 @@ class SimulatedSequence(Sequence):
         for k in range(len(times)):
             T_rel = invert(poses[k]) @ poses[k + 1]
             distance = float(np.linalg.norm(T_rel[:3, 3]))
-            cov = spec.increment_covariance(distance)
-            white = spec.increment_covariance(distance)
-            white[3, 3] -= (spec.sigma_scale * max(distance, spec.min_distance_m)) ** 2
-            xi = rng.standard_normal(6) * np.sqrt(np.diag(white))
+            xi = rng.standard_normal(6) * np.sqrt(np.diag(spec.white_noise_covariance(distance)))
             T_meas = T_rel.copy()
             T_meas[:3, 3] *= scale
-            T_meas[:3, :3] = T_rel[:3, :3] @ _so3_exp(xi[:3])
+            T_meas[:3, :3] = T_rel[:3, :3] @ Rotation.from_rotvec(xi[:3]).as_matrix()
             T_meas[:3, 3] += T_rel[:3, :3] @ xi[3:]
-            yield (float(times[k]), 0, Odometry(float(times[k]), float(stamps[k]), T_meas, cov, k))
+            yield (float(times[k]), 0, Odometry(float(times[k]), float(stamps[k]), T_meas, spec.increment_covariance(distance), k))
 
     def noiseless_scans(self) -> Iterator[np.ndarray]:
         """The laser ranges of every scan without noise (for pictures and tests)."""
@@ -170,9 +168,3 @@ class SimulatedSequence(Sequence):
         streams = [self._odometry_events(rngs["odometry"]), self._laser_events(rngs["laser"]), self._camera_events(rngs["camera"])]
         for _, _, event in heapq.merge(*streams, key=lambda item: (item[0], item[1])):
             yield event
-
-
-def _so3_exp(omega: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(omega).as_matrix()

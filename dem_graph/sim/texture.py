@@ -16,7 +16,6 @@ from dem_graph.sim.config import TextureSpec
 from dem_graph.sim.noise import fractal_noise, smooth_noise, smoothstep
 from dem_graph.sim.terrain import Terrain
 
-
 _SCALE = 65535.0
 
 
@@ -74,8 +73,9 @@ class GroundTexture:
             sel = np.flatnonzero(base == k)
             if len(sel) == 0:
                 continue
-            lo = self._lookup(k, col0[sel], row0[sel])
-            hi = self._lookup(k + 1, col0[sel], row0[sel])
+            c, r = col0[sel], row0[sel]
+            lo = self._lookup(k, c, r)
+            hi = self._lookup(k + 1, c, r)
             out[sel] = lo + frac[sel] * (hi - lo)
         return out
 

@@ -133,6 +133,6 @@ class VehicleMotion:
 
     def contact_heights(self, T_world_body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(M,4) world heights of the wheel contacts under poses, and of the terrain below them."""
-        T = np.atleast_3d(T_world_body) if T_world_body.ndim == 3 else T_world_body[None]
+        T = T_world_body if T_world_body.ndim == 3 else T_world_body[None]
         pts = np.einsum("mij,kj->mki", T[:, :3, :3], self.contacts_body) + T[:, None, :3, 3]
         return pts[..., 2], self.contact_surface.height_at(pts[..., 0], pts[..., 1])
