@@ -59,6 +59,34 @@ class PinholeCamera:
         uv = np.stack([self.fx_px * xy[:, 0] + self.cx_px, self.fy_px * xy[:, 1] + self.cy_px], axis=1)
         return uv, in_front
 
+    def project_with_jacobian(self, points_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`project` plus the (N,2,3) Jacobian of the pixel coordinates w.r.t. the camera-frame point."""
+        p = np.atleast_2d(np.asarray(points_cam, dtype=float))
+        in_front = p[:, 2] > 1e-9
+        z = np.where(in_front, p[:, 2], np.nan)
+        x, y = p[:, 0] / z, p[:, 1] / z
+        # d(x, y)/d(p): [[1/z, 0, -x/z], [0, 1/z, -y/z]]
+        J_xy_p = np.zeros((len(p), 2, 3))
+        J_xy_p[:, 0, 0] = 1.0 / z
+        J_xy_p[:, 0, 2] = -x / z
+        J_xy_p[:, 1, 1] = 1.0 / z
+        J_xy_p[:, 1, 2] = -y / z
+        k1, k2, p1, p2, k3 = self.distortion
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        J_d = np.empty((len(p), 2, 2))
+        J_d[:, 0, 0] = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
+        J_d[:, 0, 1] = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
+        J_d[:, 1, 0] = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
+        J_d[:, 1, 1] = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
+        J_d[:, 0, :] *= self.fx_px
+        J_d[:, 1, :] *= self.fy_px
+        uv = np.stack([self.fx_px * xd + self.cx_px, self.fy_px * yd + self.cy_px], axis=1)
+        return uv, J_d @ J_xy_p, in_front
+
     def in_image(self, uv_px: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
         """Mask of pixel coordinates at least ``margin_px`` inside the image."""
         u, v = uv_px[:, 0], uv_px[:, 1]

@@ -1,0 +1,89 @@
+"""What every estimator returns, and the interface the run loop drives."""
+
+from __future__ import annotations
+
+import abc
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.geometry.trajectory import Trajectory
+
+
+@dataclass
+class MapPoints:
+    """Every point ever estimated, with its last estimate and covariance (world frame)."""
+
+    point_id: list[int] = field(default_factory=list)
+    kind: list[int] = field(default_factory=list)  # 0 laser, 1 camera
+    xyz: list[np.ndarray] = field(default_factory=list)
+    covariance: list[np.ndarray] = field(default_factory=list)
+    n_tracked: list[int] = field(default_factory=list)
+    created_t_s: list[float] = field(default_factory=list)
+
+    def add(self, point_id: int, kind: int, xyz: np.ndarray, covariance: np.ndarray, n_tracked: int, created_t_s: float) -> None:
+        self.point_id.append(int(point_id))
+        self.kind.append(int(kind))
+        self.xyz.append(np.array(xyz, dtype=float))
+        self.covariance.append(np.array(covariance, dtype=float))
+        self.n_tracked.append(int(n_tracked))
+        self.created_t_s.append(float(created_t_s))
+
+    def __len__(self) -> int:
+        return len(self.point_id)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        n = len(self)
+        return {
+            "point_id": np.asarray(self.point_id, dtype=np.int32),
+            "kind": np.asarray(self.kind, dtype=np.uint8),
+            "xyz": np.asarray(self.xyz, dtype=float).reshape(n, 3),
+            "covariance": np.asarray(self.covariance, dtype=float).reshape(n, 3, 3),
+            "n_tracked": np.asarray(self.n_tracked, dtype=np.int32),
+            "created_t_s": np.asarray(self.created_t_s, dtype=float),
+        }
+
+
+@dataclass
+class FrameRecord:
+    t_s: float
+    T_world_body: np.ndarray
+    pose_covariance: np.ndarray  # 6x6 [rotation, translation], right perturbation
+    n_live: int
+    n_tracked: int
+    timing_s: dict[str, float]
+
+
+@dataclass
+class EstimatorResult:
+    name: str
+    frames: list[FrameRecord] = field(default_factory=list)
+    points: MapPoints = field(default_factory=MapPoints)
+    counters: Counter = field(default_factory=Counter)
+
+    def trajectory(self) -> Trajectory:
+        return Trajectory.from_poses(np.array([f.t_s for f in self.frames]), np.array([f.T_world_body for f in self.frames]))
+
+    def pose_covariances(self) -> np.ndarray:
+        return np.array([f.pose_covariance for f in self.frames])
+
+
+class Estimator(abc.ABC):
+    """Consumes a sequence's events in time order; :meth:`result` may be called at any time."""
+
+    name: str = "estimator"
+
+    @abc.abstractmethod
+    def on_odometry(self, event: Odometry) -> None: ...
+
+    @abc.abstractmethod
+    def on_scan(self, event: LaserScan) -> None: ...
+
+    @abc.abstractmethod
+    def on_frame(self, event: CameraFrame) -> FrameRecord: ...
+
+    @abc.abstractmethod
+    def result(self) -> EstimatorResult:
+        """Everything estimated so far (live points included with their current estimates)."""

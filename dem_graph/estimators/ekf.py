@@ -1,0 +1,303 @@
+"""The paper's estimator: an EKF over the pose and the live points, in two variants (III-C).
+
+- ``gm`` (Algorithm 1): predict, track every point in a constant-size region, one update with all
+  matches (a 2n_t x 2n_t innovation covariance).
+- ``ptpm`` (Algorithm 2): predict, then one point at a time, most informative first: its search
+  region comes from the current innovation covariance (a chi-square gate), so regions shrink after
+  the first updates; track it; update.
+
+Prediction uses wheel odometry when the dataset has it (``motion_model: auto``) and a
+constant-velocity model otherwise.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+from scipy.stats import chi2
+
+from dem_graph.config_types import StrictModel
+from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.estimators.base import Estimator, EstimatorResult, FrameRecord
+from dem_graph.estimators.ekf_filter import EkfState, point_cols
+from dem_graph.frontend.frontend import FrontEnd, FrontendConfig
+from dem_graph.frontend.pose_history import PoseHistory
+from dem_graph.geometry.lie import adjoint, scale_increment
+from dem_graph.geometry.rig import SensorRig
+from dem_graph.geometry.se3 import invert, transform_points
+
+
+class MotionConfig(StrictModel):
+    model: Literal["auto", "odometry", "constant_velocity"] = Field(
+        "auto", description="auto: odometry when the dataset has it, constant velocity otherwise"
+    )
+    sigma_angular_acc_radps2: float = Field(1.5, gt=0, description="constant-velocity model: angular acceleration noise, rad/s^2/sqrt(Hz)")
+    sigma_linear_acc_mps2: float = Field(1.5, gt=0, description="constant-velocity model: linear acceleration noise, m/s^2/sqrt(Hz)")
+    initial_speed_mps: float = Field(0.0, description="constant-velocity model: initial forward speed, m/s")
+    initial_sigma_speed_mps: float = Field(1.0, gt=0, description="constant-velocity model: initial speed uncertainty, m/s")
+    initial_sigma_pose: float = Field(1e-4, gt=0, description="initial pose uncertainty (radians and metres); the estimate is anchored at the initial pose")
+
+
+class EkfConfig(StrictModel):
+    variant: Literal["gm", "ptpm"] = Field("ptpm", description="gm: one batch update per image; ptpm: point to point")
+    frontend: FrontendConfig = Field(default_factory=FrontendConfig)
+    motion: MotionConfig = Field(default_factory=MotionConfig)
+    gm_search_half_size_px: int = Field(20, ge=1, description="GM: constant half size of every search region, pixels")
+    inject_false_match_fraction: float = Field(0.0, ge=0, le=1, description="replace this fraction of matches by wrong ones (robustness studies)")
+    inject_false_match_offset_px: float = Field(12.0, ge=0, description="distance of an injected wrong match from the true one, pixels")
+    inject_seed: int = Field(0, ge=0, description="seed of the injected wrong matches")
+
+
+class EkfSlam(Estimator):
+    """EKF SLAM with the shared front end; feed it events in time order."""
+
+    def __init__(self, rig: SensorRig, T_world_body_initial: np.ndarray, t_start_s: float, has_odometry: bool, config: EkfConfig | None = None):
+        self.config = config or EkfConfig()
+        self.name = f"ekf-{self.config.variant}"
+        self.rig = rig
+        self.frontend = FrontEnd(self.config.frontend, rig)
+        m = self.config.motion
+        self.use_odometry = m.model == "odometry" or (m.model == "auto" and has_odometry)
+        v0 = np.zeros(6)
+        v0[3] = m.initial_speed_mps
+        P_v0 = np.diag([0.3**2] * 3 + [m.initial_sigma_speed_mps**2] * 3)
+        self.state = EkfState(T_world_body_initial, np.eye(6) * m.initial_sigma_pose**2, v0, P_v0)
+        self.t_s = float(t_start_s)
+        self.history = PoseHistory()
+        self.history.append(self.t_s, self.state.T_world_body)
+        self._odometry: list[Odometry] = []
+        self._odometry_cursor_s = self.t_s
+        self._last_twist_rate: np.ndarray | None = None
+        self._scans: list[LaserScan] = []
+        self._result = EstimatorResult(self.name)
+        self._rng = np.random.default_rng(self.config.inject_seed)
+        self._gate = chi2.ppf(self.config.frontend.tracker.gate_probability, 2)
+        self._R = self.config.frontend.sigma_px**2
+        self.last_search_sizes: list[tuple[int, int]] = []  # per tracked point of the last frame, in order
+
+    # --- events ------------------------------------------------------------------------------
+    def on_odometry(self, event: Odometry) -> None:
+        self._odometry.append(event)
+
+    def on_scan(self, event: LaserScan) -> None:
+        self._scans.append(event)
+
+    def on_frame(self, event: CameraFrame) -> FrameRecord:
+        timing = {}
+        t0 = time.perf_counter()
+        self._predict(event.t_s)
+        t1 = time.perf_counter()
+        timing["prediction"] = t1 - t0
+        image = event.image
+        n_tracked, t_track, t_update = self._track_and_update(image)
+        timing["tracking"], timing["update"] = t_track, t_update
+        t2 = time.perf_counter()
+        self.history.append(event.t_s, self.state.T_world_body)
+        self._drop_points()
+        self._add_points(image, event.t_s)
+        timing["map"] = time.perf_counter() - t2
+        timing["total"] = time.perf_counter() - t0
+        record = FrameRecord(event.t_s, self.state.T_world_body.copy(), self.state.pose_covariance(), self.state.n_points, n_tracked, timing)
+        self._result.frames.append(record)
+        return record
+
+    # --- prediction --------------------------------------------------------------------------
+    def _predict(self, t_s: float) -> None:
+        dt = t_s - self.t_s
+        if dt < 0:
+            raise ValueError("frames must come in time order")
+        if self.use_odometry:
+            U, Q = self._odometry_increment(self.t_s, t_s)
+            self.state.predict_increment(U, Q, dt)
+        elif dt > 0:
+            m = self.config.motion
+            sigma = np.array([m.sigma_angular_acc_radps2] * 3 + [m.sigma_linear_acc_mps2] * 3)
+            self.state.predict_constant_velocity(dt, sigma)
+        self.t_s = t_s
+
+    def _odometry_increment(self, a: float, b: float) -> tuple[np.ndarray, np.ndarray]:
+        """Compose the odometry between ``a`` and ``b``; the part after the last increment is
+        extrapolated at the last increment's rate (it is measured later, within a few ms)."""
+        U, Q = np.eye(4), np.zeros((6, 6))
+        covered = self._odometry_cursor_s
+        keep = []
+        for e in self._odometry:
+            lo, hi = max(e.t_prev_s, covered), min(e.t_s, b)
+            span = e.t_s - e.t_prev_s
+            if hi > lo and span > 0:
+                f = (hi - lo) / span
+                part = scale_increment(e.T_prev_curr, f) if f < 1.0 - 1e-9 else e.T_prev_curr
+                A = adjoint(invert(part))
+                Q = A @ Q @ A.T + e.covariance * f
+                U = U @ part
+                covered = hi
+                self._last_twist_rate = (e.T_prev_curr, e.covariance, span)
+            if e.t_s > b:
+                keep.append(e)
+        if covered < b and self._last_twist_rate is not None:
+            T_rate, cov_rate, span = self._last_twist_rate
+            f = (b - covered) / span
+            part = scale_increment(T_rate, f)
+            A = adjoint(invert(part))
+            Q = A @ Q @ A.T + cov_rate * max(f, 1.0)
+            U = U @ part
+        self._odometry = keep
+        self._odometry_cursor_s = b
+        if not np.any(Q):
+            Q = np.eye(6) * 1e-6
+        return U, Q
+
+    # --- tracking and update -----------------------------------------------------------------
+    def _camera_pose(self) -> np.ndarray:
+        return self.state.T_world_body @ self.rig.T_body_cam
+
+    def _inject(self, uv_found: np.ndarray | None, uv_true_guess: np.ndarray) -> tuple[np.ndarray | None, bool]:
+        f = self.config.inject_false_match_fraction
+        if f <= 0 or self._rng.random() >= f:
+            return uv_found, False
+        a = self._rng.uniform(0, 2 * np.pi)
+        base = uv_found if uv_found is not None else uv_true_guess
+        return base + self.config.inject_false_match_offset_px * np.array([np.cos(a), np.sin(a)]), True
+
+    def _track_and_update(self, image) -> tuple[int, float, float]:
+        st = self.state
+        self.last_search_sizes = []
+        if st.n_points == 0:
+            return 0, 0.0, 0.0
+        t0 = time.perf_counter()
+        fe = self.frontend
+        idx = np.arange(st.n_points)
+        uv, Hp, Hx, in_front, _ = st.observe(idx, self.rig.camera_model, self.rig.T_body_cam)
+        homographies = fe.ground_homographies(st.point_ids, st.points_xyz, self._camera_pose())
+        if self.config.variant == "gm":
+            half = self.config.gm_search_half_size_px
+            ok_idx, innov = [], []
+            for i in idx[in_front]:
+                res = fe.track(image, int(st.point_ids[i]), homographies[i], uv[i], half_size_px=half)
+                self.last_search_sizes.append(res.search_half_size_px)
+                found, injected = self._inject(res.uv_px if res.ok else None, uv[i])
+                if found is None:
+                    continue
+                if injected and not self._injected_accepted(np.max(np.abs(found - uv[i])) <= half):
+                    continue
+                ok_idx.append(i)
+                innov.append(found - uv[i])
+            t1 = time.perf_counter()
+            if ok_idx:
+                ok = np.array(ok_idx)
+                st.batch_update(ok, np.array(innov), Hp[ok], Hx[ok], self._R)
+            return len(ok_idx), t1 - t0, time.perf_counter() - t1
+
+        # PTPM: most informative first (largest predicted innovation relative to the pixel noise)
+        S_all = st.innovation_covariances(Hp, Hx, self._R)
+        gains = np.where(in_front, np.linalg.slogdet(S_all / self._R)[1], -np.inf)
+        order = [int(i) for i in np.argsort(-gains) if np.isfinite(gains[i])]
+        t_track = time.perf_counter() - t0
+        t_update = 0.0
+        st.begin_sequential(len(order))
+        n_ok = 0
+        try:
+            for i in order:
+                ta = time.perf_counter()
+                d_pose, d_point = st.correction(i)
+                uv_i = uv[i] + Hp[i] @ d_pose + Hx[i] @ d_point
+                S = st.sequential_innovation_covariance(i, Hp[i], Hx[i], self._R)
+                res = fe.track(image, int(st.point_ids[i]), homographies[i], uv_i, S_px2=S)
+                self.last_search_sizes.append(res.search_half_size_px)
+                found, injected = self._inject(res.uv_px if res.ok else None, uv_i)
+                tb = time.perf_counter()
+                t_track += tb - ta
+                if found is None:
+                    continue
+                y = found - uv_i
+                if injected and not self._injected_accepted(y @ np.linalg.solve(S, y) <= self._gate):
+                    continue
+                st.sequential_update(i, y, Hp[i], Hx[i], S)
+                n_ok += 1
+                t_update += time.perf_counter() - tb
+        finally:
+            tc = time.perf_counter()
+            st.end_sequential()
+            t_update += time.perf_counter() - tc
+        return n_ok, t_track, t_update
+
+    def _injected_accepted(self, inside_region: bool) -> bool:
+        counters = self.frontend.counters
+        counters["injected"] += 1
+        counters["injected_accepted" if inside_region else "injected_rejected"] += 1
+        return inside_region
+
+    # --- map management ----------------------------------------------------------------------
+    def _archive(self, i: int, reason: str) -> None:
+        st = self.state
+        track = self.frontend.drop(int(st.point_ids[i]), reason)
+        self._result.points.add(track.point_id, track.kind, st.points_xyz[i], st.point_covariance(i), track.n_tracked, track.created_t_s)
+
+    def _drop_points(self) -> None:
+        st = self.state
+        if st.n_points == 0:
+            return
+        cam = self.rig.camera_model
+        T_cam_world = invert(self._camera_pose())
+        uv, in_front = cam.project(transform_points(T_cam_world, st.points_xyz))
+        p_body = transform_points(invert(st.T_world_body), st.points_xyz)
+        margin = self.config.frontend.image_margin_px + self.config.frontend.tracker.patch_half_size_px
+        remove = np.zeros(st.n_points, dtype=bool)
+        for i in range(st.n_points):
+            track = self.frontend.tracks[int(st.point_ids[i])]
+            reason = None
+            if not in_front[i] or p_body[i, 0] < 0.0:
+                reason = "behind"
+            elif not cam.in_image(uv[i : i + 1], margin)[0]:
+                reason = "left_image"
+            elif track.misses >= self.config.frontend.max_misses:
+                reason = "lost"
+            if reason:
+                self._archive(i, reason)
+                remove[i] = True
+        st.remove_points(remove)
+
+    def _speed_mps(self) -> float:
+        return float(np.linalg.norm(self.state.v_body[3:]))
+
+    def _add_points(self, image, t_s: float) -> None:
+        st = self.state
+        fe = self.frontend
+        focus = fe.focus_area(self._speed_mps() if len(self.history) > 2 else None)
+        T_body_world = invert(st.T_world_body)
+        cam = self.rig.camera_model
+        occupied_uv = cam.project(transform_points(invert(self._camera_pose()), st.points_xyz))[0] if st.n_points else np.zeros((0, 2))
+        new = []
+        scans, self._scans = [s for s in self._scans if s.t_s <= t_s], [s for s in self._scans if s.t_s > t_s]
+        for scan in scans:
+            # the paper's Eq. 2: the laser at the scan's time, expressed in the current body frame
+            T_body_laser_now = T_body_world @ self.history.at(scan.t_s) @ self.rig.T_body_laser
+            pts = fe.new_laser_points(scan.ranges_m, T_body_laser_now, image, t_s, st.T_world_body, focus, occupied_uv)
+            if pts:
+                occupied_uv = np.concatenate([occupied_uv, cam.project(transform_points(fe.T_cam_body, np.array([p.p_body for p in pts])))[0]])
+            new.extend(pts)
+        live_body = transform_points(T_body_world, st.points_xyz) if st.n_points else np.zeros((0, 3))
+        if new:
+            live_body = np.concatenate([live_body, np.array([p.p_body for p in new])])
+        new.extend(fe.new_camera_points(image, t_s, st.T_world_body, focus, live_body, occupied_uv))
+        if new:
+            st.add_points(np.array([p.point_id for p in new]), np.array([p.p_body for p in new]), np.array([p.Sigma_body for p in new]))
+
+    # --- results -----------------------------------------------------------------------------
+    def result(self) -> EstimatorResult:
+        """Frames so far and every point: archived ones plus the live ones at their current estimate."""
+        res = EstimatorResult(self.name, list(self._result.frames))
+        for k in ("point_id", "kind", "xyz", "covariance", "n_tracked", "created_t_s"):
+            getattr(res.points, k).extend(getattr(self._result.points, k))
+        st = self.state
+        for i in range(st.n_points):
+            track = self.frontend.tracks[int(st.point_ids[i])]
+            res.points.add(track.point_id, track.kind, st.points_xyz[i], st.point_covariance(i), track.n_tracked, track.created_t_s)
+        res.counters = self.frontend.counters.copy()
+        return res
+
+
+__all__ = ["EkfConfig", "EkfSlam", "MotionConfig", "point_cols"]

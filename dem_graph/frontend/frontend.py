@@ -1,0 +1,234 @@
+"""The front end shared by every estimator: which points live, their patches, and tracking them.
+
+Points are where the guidance wants them, not where the image has corners (the paper, III-A/B):
+- laser points: a subset of each scan's returns inside the focus area, made 3D through the pose
+  at the scan's time (spline of the pose history) and ``T_body_laser``;
+- camera points: seeded at the focus cells that hold no point, on the flat-ground guess with
+  about 0.5 m of height uncertainty.
+A point is dropped when it leaves the image, falls behind, or fails tracking too often.
+
+The estimator owns the 3D estimates; the front end hands out new points as body-frame positions
+with covariances, and tracks a point given the estimator's prediction (pixel and, for an active
+search, its 2x2 innovation covariance).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from dem_graph.config_types import StrictModel
+from dem_graph.frontend.focus import FocusArea, FocusConfig
+from dem_graph.frontend.tracker import Patch, PatchTracker, TrackerConfig, TrackResult
+from dem_graph.geometry.rig import SensorRig
+from dem_graph.geometry.se3 import invert, transform_points
+
+LASER, CAMERA = 0, 1
+
+
+class FrontendConfig(StrictModel):
+    tracker: TrackerConfig = Field(default_factory=TrackerConfig)
+    focus: FocusConfig = Field(default_factory=FocusConfig)
+    max_points: int = Field(140, ge=1, description="cap n on live points")
+    max_laser_points: int = Field(100, ge=0, description="live laser points at most (the rest of the cap is for camera points)")
+    laser_points_per_scan: int = Field(30, ge=0, description="returns taken from one scan at most")
+    min_separation_px: float = Field(8.0, ge=0, description="a new point keeps this distance from live points, pixels")
+    image_margin_px: int = Field(12, ge=0, description="points closer than this to the image border are dropped, pixels")
+    max_misses: int = Field(3, ge=1, description="a point that fails tracking this many frames in a row is dropped")
+    camera_point_sigma_height_m: float = Field(0.5, gt=0, description="height uncertainty of a new camera point (flat-ground guess), metres")
+    camera_point_sigma_px: float = Field(1.0, gt=0, description="across-ray uncertainty of a new camera point, pixels")
+    interpolation_sigma_m: float = Field(0.002, ge=0, description="uncertainty added by interpolating the pose at a scan's time, metres")
+    warp_patches: bool = Field(True, description="warp patches by the ground-plane homography between the two views")
+    sigma_px: float = Field(1.0, gt=0, description="standard deviation of a tracked position, pixels")
+
+
+@dataclass
+class PointTrack:
+    point_id: int
+    kind: int  # LASER or CAMERA
+    patch: Patch
+    T_world_cam_source: np.ndarray  # camera pose estimate when the patch was taken
+    created_t_s: float
+    misses: int = 0
+    n_tracked: int = 0
+
+
+@dataclass
+class NewPoint:
+    point_id: int
+    kind: int
+    p_body: np.ndarray  # (3,) current body frame
+    Sigma_body: np.ndarray  # (3,3)
+
+
+@dataclass
+class FrontEnd:
+    config: FrontendConfig
+    rig: SensorRig
+    tracker: PatchTracker = field(init=False)
+    tracks: dict[int, PointTrack] = field(default_factory=dict)
+    counters: Counter = field(default_factory=Counter)
+    _next_id: int = 0
+
+    def __post_init__(self):
+        self.tracker = PatchTracker(self.config.tracker)
+        self.camera = self.rig.camera_model
+        self.T_body_cam = self.rig.T_body_cam
+        self.T_cam_body = invert(self.T_body_cam)
+
+    # --- tracking ----------------------------------------------------------------------------
+    def ground_homographies(self, point_ids, X_world: np.ndarray, T_world_cam: np.ndarray, half_m: float = 0.15) -> list:
+        """Per point, the homography from its patch's image to the current image induced by the
+        horizontal ground plane through the point (None where it cannot be formed or warping is off)."""
+        n = len(point_ids)
+        if not self.config.warp_patches or n == 0:
+            return [None] * n
+        offsets = np.array([[-half_m, -half_m, 0.0], [half_m, -half_m, 0.0], [half_m, half_m, 0.0], [-half_m, half_m, 0.0]])
+        corners = X_world[:, None, :] + offsets[None]  # (n,4,3)
+        T_cam0_world = invert(np.array([self.tracks[int(p)].T_world_cam_source for p in point_ids]))  # (n,4,4)
+        c0 = np.einsum("nij,nkj->nki", T_cam0_world[:, :3, :3], corners) + T_cam0_world[:, None, :3, 3]
+        T_cam1_world = invert(T_world_cam)
+        c1 = corners @ T_cam1_world[:3, :3].T + T_cam1_world[:3, 3]
+        uv0, f0 = self.camera.project(c0.reshape(-1, 3))
+        uv1, f1 = self.camera.project(c1.reshape(-1, 3))
+        ok = (f0 & f1).reshape(n, 4).all(axis=1)
+        uv0, uv1 = uv0.reshape(n, 4, 2).astype(np.float32), uv1.reshape(n, 4, 2).astype(np.float32)
+        out = []
+        for k in range(n):
+            H = None
+            if ok[k]:
+                try:
+                    H = cv2.getPerspectiveTransform(uv0[k], uv1[k]).astype(np.float64)
+                except cv2.error:
+                    H = None
+            out.append(H)
+        return out
+
+    def track(self, image, point_id: int, H_src_to_cur, uv_pred, S_px2=None, half_size_px=None) -> TrackResult:
+        """Track one point: its patch warped by ``H_src_to_cur`` (or not, if None), searched around
+        ``uv_pred`` in the chi-square region of ``S_px2`` or the square of ``half_size_px``."""
+        track = self.tracks[point_id]
+        template = self.tracker.template(track.patch, H_src_to_cur, uv_pred)
+        result = self.tracker.track(image, template, uv_pred, S_px2=S_px2, half_size_px=half_size_px)
+        self.counters[f"track_{result.status.name.lower()}"] += 1
+        if result.ok:
+            track.misses = 0
+            track.n_tracked += 1
+        else:
+            track.misses += 1
+        return result
+
+    # --- new points --------------------------------------------------------------------------
+    def focus_area(self, speed_mps: float | None) -> FocusArea:
+        return FocusArea.for_speed(self.config.focus, self.rig, speed_mps)
+
+    def _budget(self, kind: int) -> int:
+        live = len(self.tracks)
+        free = self.config.max_points - live
+        if kind == LASER:
+            n_laser = sum(1 for t in self.tracks.values() if t.kind == LASER)
+            free = min(free, self.config.max_laser_points - n_laser, self.config.laser_points_per_scan)
+        return max(free, 0)
+
+    def _far_from(self, uv: np.ndarray, occupied_uv: np.ndarray) -> bool:
+        if len(occupied_uv) == 0:
+            return True
+        return bool(np.min(np.sum((occupied_uv - uv) ** 2, axis=1)) >= self.config.min_separation_px**2)
+
+    def _register(self, kind: int, image, uv, t_s, T_world_cam) -> int | None:
+        patch = self.tracker.make_patch(image, uv, t_s)
+        if patch is None:
+            self.counters["seed_untrackable"] += 1
+            return None
+        point_id = self._next_id
+        self._next_id += 1
+        self.tracks[point_id] = PointTrack(point_id, kind, patch, np.array(T_world_cam), t_s)
+        self.counters["added_laser" if kind == LASER else "added_camera"] += 1
+        return point_id
+
+    def new_laser_points(self, ranges_m, T_body_laser_now: np.ndarray, image, t_s, T_world_body, focus: FocusArea, occupied_uv: np.ndarray) -> list[NewPoint]:
+        """Points from one scan: ``T_body_laser_now`` places the laser (at the scan's time) in the
+        current body frame (the paper's Eq. 2 with the spline-interpolated pose)."""
+        budget = self._budget(LASER)
+        laser = self.rig.laser
+        valid = np.isfinite(ranges_m) & (ranges_m >= laser.range_min_m) & (ranges_m <= laser.range_max_m)
+        if budget == 0 or not valid.any():
+            return []
+        dirs = laser.beam_directions()
+        beams = np.flatnonzero(valid)
+        p_body = transform_points(T_body_laser_now, dirs[beams] * ranges_m[beams, None])
+        in_focus = focus.contains(p_body)
+        beams, p_body = beams[in_focus], p_body[in_focus]
+        if len(beams) == 0:
+            return []
+        uv, in_front = self.camera.project(transform_points(self.T_cam_body, p_body))
+        ok = in_front & self.camera.in_image(uv, self.config.image_margin_px + self.config.tracker.patch_half_size_px)
+        beams, p_body, uv = beams[ok], p_body[ok], uv[ok]
+        # spread: evenly spaced candidates along the scan
+        order = np.linspace(0, len(beams) - 1, min(len(beams), 2 * budget + 1)).round().astype(int) if len(beams) else []
+        T_world_cam = T_world_body @ self.T_body_cam
+        occupied = list(occupied_uv)
+        R_ray = T_body_laser_now[:3, :3]
+        sigma_r = laser.range_sigma_m
+        out: list[NewPoint] = []
+        for k in np.unique(order):
+            if len(out) >= budget:
+                break
+            if not self._far_from(uv[k], np.asarray(occupied).reshape(-1, 2)):
+                continue
+            point_id = self._register(LASER, image, uv[k], t_s, T_world_cam)
+            if point_id is None:
+                continue
+            d = R_ray @ dirs[beams[k]]
+            Sigma = sigma_r**2 * np.outer(d, d) + self.config.interpolation_sigma_m**2 * np.eye(3)
+            out.append(NewPoint(point_id, LASER, p_body[k], Sigma))
+            occupied.append(uv[k])
+        return out
+
+    def new_camera_points(self, image, t_s, T_world_body, focus: FocusArea, live_points_body: np.ndarray, occupied_uv: np.ndarray) -> list[NewPoint]:
+        """Points at the empty focus cells, on the flat ground of the current body frame."""
+        budget = self._budget(CAMERA)
+        if budget == 0:
+            return []
+        cells = focus.cell_centers_body()
+        taken = np.zeros(len(cells), dtype=bool)
+        if len(live_points_body):
+            idx = focus.cell_of(live_points_body)
+            taken[idx[idx >= 0]] = True
+        free = np.flatnonzero(~taken)
+        if len(free) == 0:
+            return []
+        uv, in_front = self.camera.project(transform_points(self.T_cam_body, cells[free]))
+        ok = in_front & self.camera.in_image(uv, self.config.image_margin_px + self.config.tracker.patch_half_size_px)
+        free, uv = free[ok], uv[ok]
+        T_world_cam = T_world_body @ self.T_body_cam
+        o = self.T_body_cam[:3, 3]
+        occupied = list(occupied_uv)
+        out: list[NewPoint] = []
+        for k in range(len(free)):
+            if len(out) >= budget:
+                break
+            if not self._far_from(uv[k], np.asarray(occupied).reshape(-1, 2)):
+                continue
+            point_id = self._register(CAMERA, image, uv[k], t_s, T_world_cam)
+            if point_id is None:
+                continue
+            p = cells[free[k]]
+            ray = p - o
+            depth = np.linalg.norm(ray)
+            r = ray / depth
+            sin_elev = max(abs(r[2]), 0.05)
+            sigma_along = self.config.camera_point_sigma_height_m / sin_elev
+            sigma_across = self.config.camera_point_sigma_px * depth / self.camera.fx_px
+            Sigma = sigma_along**2 * np.outer(r, r) + sigma_across**2 * (np.eye(3) - np.outer(r, r))
+            out.append(NewPoint(point_id, CAMERA, p, Sigma))
+            occupied.append(uv[k])
+        return out
+
+    def drop(self, point_id: int, reason: str) -> PointTrack:
+        self.counters[f"dropped_{reason}"] += 1
+        return self.tracks.pop(point_id)

@@ -1,0 +1,58 @@
+"""Recent estimated poses, interpolated at any time in between by a spline (the paper, III-D).
+
+The laser is not synchronized with the camera: a scan's pose lies between two camera poses. As in
+the paper, the pose at the scan's time comes from a spline through the recent pose history: a
+cubic spline of the position and a cubic rotation spline (scipy's ``RotationSpline``), both
+through the last few estimated camera poses.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation, RotationSpline
+
+from dem_graph.geometry.se3 import make_pose
+
+
+class PoseHistory:
+    def __init__(self, window: int = 6):
+        self._t: deque[float] = deque(maxlen=window)
+        self._T: deque[np.ndarray] = deque(maxlen=window)
+
+    def append(self, t_s: float, T_world_body: np.ndarray) -> None:
+        """Add the pose at ``t_s``; a pose at the latest time replaces it (a re-estimate)."""
+        if self._t and t_s <= self._t[-1]:
+            if t_s == self._t[-1]:
+                self._T[-1] = np.array(T_world_body, dtype=float)
+                return
+            raise ValueError("pose history times must increase")
+        self._t.append(float(t_s))
+        self._T.append(np.array(T_world_body, dtype=float))
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    @property
+    def latest_t_s(self) -> float:
+        return self._t[-1]
+
+    def at(self, t_s: float) -> np.ndarray:
+        """``T_world_body`` at ``t_s``: spline inside the history's span, linear just beyond it."""
+        t = np.array(self._t)
+        T = np.array(self._T)
+        if len(t) == 1:
+            return T[0].copy()
+        if len(t) == 2 or t_s < t[0] or t_s > t[-1]:
+            i = 0 if t_s < t[0] else len(t) - 2
+            a = (t_s - t[i]) / (t[i + 1] - t[i])
+            rot = Rotation.from_matrix(T[i, :3, :3])
+            delta = (rot.inv() * Rotation.from_matrix(T[i + 1, :3, :3])).as_rotvec()
+            R = (rot * Rotation.from_rotvec(a * delta)).as_matrix()
+            p = T[i, :3, 3] + a * (T[i + 1, :3, 3] - T[i, :3, 3])
+            return make_pose(R, p)
+        R = RotationSpline(t, Rotation.from_matrix(T[:, :3, :3]))(t_s).as_matrix()
+        p = CubicSpline(t, T[:, :3, 3], axis=0)(t_s)
+        return make_pose(R, p)

@@ -1,0 +1,121 @@
+"""Running an estimator over a dataset: the loop, timing, metrics and the run folder.
+
+``run_estimator`` owns the loop over a :class:`Sequence` (the estimators only see events). If the
+loop fails part way (a corrupt image late in a log, say), what was estimated so far is still
+returned, with the error, so :func:`write_run` can save it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from dem_graph.config_types import StrictModel
+from dem_graph.datasets.base import Sequence
+from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.errors import DemGraphError
+from dem_graph.estimators.base import Estimator, EstimatorResult
+from dem_graph.estimators.ekf import EkfConfig, EkfSlam
+from dem_graph.evaluation.run_output import frame_timing_summary, write_run_outputs
+from dem_graph.evaluation.trajectory_metrics import nees_bounds, pose_nees, trajectory_metrics
+from dem_graph.progress import progress
+
+log = logging.getLogger(__name__)
+
+ESTIMATORS = ("gm", "ptpm")
+
+
+class RunConfig(StrictModel):
+    estimator: Literal["gm", "ptpm"] = Field("ptpm", description="which estimator")
+    ekf: EkfConfig = Field(default_factory=EkfConfig, description="EKF baselines (gm, ptpm)")
+    max_frames: int | None = Field(None, ge=1, description="stop after this many camera frames")
+
+
+def make_estimator(sequence: Sequence, config: RunConfig) -> Estimator:
+    if config.estimator in ("gm", "ptpm"):
+        ekf = config.ekf.model_copy(update={"variant": config.estimator})
+        return EkfSlam(sequence.rig, sequence.T_world_body_initial, sequence.t_start_s, sequence.has_odometry, ekf)
+    raise DemGraphError(f"unknown estimator '{config.estimator}'; choose one of {', '.join(ESTIMATORS)}")
+
+
+@dataclass
+class RunResult:
+    estimator: EstimatorResult
+    config: RunConfig
+    metrics: dict = field(default_factory=dict)
+    error: str | None = None  # set when the loop stopped early; the result holds what was done
+    elapsed_s: float = 0.0
+
+
+def run_estimator(sequence: Sequence, config: RunConfig | None = None) -> RunResult:
+    config = config or RunConfig()
+    estimator = make_estimator(sequence, config)
+    start = time.perf_counter()
+    error = None
+    frames = 0
+    try:
+        for event in progress(sequence.events(), total=sequence.event_count(), desc=estimator.name, unit="event"):
+            if isinstance(event, CameraFrame):
+                estimator.on_frame(event)
+                frames += 1
+                if config.max_frames and frames >= config.max_frames:
+                    break
+            elif isinstance(event, LaserScan):
+                estimator.on_scan(event)
+            elif isinstance(event, Odometry):
+                estimator.on_odometry(event)
+    except DemGraphError as exc:
+        error = str(exc)
+        log.error("run stopped after %d frames: %s", frames, exc)
+    result = estimator.result()
+    run = RunResult(result, config, error=error, elapsed_s=time.perf_counter() - start)
+    run.metrics = compute_metrics(sequence, run)
+    return run
+
+
+def compute_metrics(sequence: Sequence, run: RunResult) -> dict:
+    res = run.estimator
+    metrics: dict = {"estimator": res.name, "frames": len(res.frames), "elapsed_s": run.elapsed_s}
+    if run.error:
+        metrics["error"] = run.error
+    if not res.frames:
+        return metrics
+    phases = sorted({k for f in res.frames for k in f.timing_s})
+    metrics["time_per_frame"] = frame_timing_summary({k: [f.timing_s.get(k, 0.0) for f in res.frames] for k in phases})
+    live = np.array([f.n_live for f in res.frames])
+    tracked = np.array([f.n_tracked for f in res.frames])
+    metrics["points_per_frame"] = {"live_median": float(np.median(live)), "live_max": int(live.max()), "tracked_median": float(np.median(tracked))}
+    metrics["map_points"] = len(res.points)
+    metrics["events"] = dict(sorted(res.counters.items()))
+    gt = sequence.ground_truth
+    if gt is not None and len(res.frames) > 1:
+        est = res.trajectory()
+        metrics["trajectory"] = trajectory_metrics(est, gt.trajectory).as_dict()
+        nees = pose_nees(est.poses_se3, gt.trajectory.at(est.t_s), res.pose_covariances())
+        lo, hi = nees_bounds(6, 0.95)
+        later = nees[1:]
+        metrics["pose_nees"] = {"median": float(np.median(later)), "fraction_within_95": float(np.mean((later >= lo) & (later <= hi))), "fraction_below_upper_95": float(np.mean(later <= hi))}
+    return metrics
+
+
+def write_run(run: RunResult, out_dir: str | Path) -> dict[str, Path]:
+    res = run.estimator
+    pts = res.points.arrays()
+    cov = pts["covariance"]
+    attributes = {
+        "point_id": pts["point_id"],
+        "kind": pts["kind"],
+        "var_x_m2": cov[:, 0, 0].astype(np.float32),
+        "var_y_m2": cov[:, 1, 1].astype(np.float32),
+        "var_z_m2": cov[:, 2, 2].astype(np.float32),
+        "n_tracked": pts["n_tracked"],
+    }
+    if not res.frames:
+        raise DemGraphError("the run produced no pose: nothing to write")
+    return write_run_outputs(out_dir, res.trajectory(), pts["xyz"], attributes, run.metrics, run.config.model_dump(mode="json"))
