@@ -80,6 +80,37 @@ def simulate(scenario_name, seed, length_m, speed_mps, no_odometry, out_dir, ove
         click.echo(f"picture: {result.preview_png}")
 
 
+def _open_dataset(path: Path):
+    from dem_graph.datasets import FolderSequence
+
+    return FolderSequence(path)
+
+
+@main.command()
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("--estimator", type=click.Choice(["gm", "ptpm"]), default="ptpm", show_default=True, help="Which estimator.")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Run folder to write.")
+@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="YAML run configuration (see config.yaml of a run).")
+@click.option("--max-points", type=int, default=None, help="Cap n on live points.")
+@click.option("--no-odometry", is_flag=True, help="Ignore the dataset's odometry (constant-velocity model).")
+@click.option("--max-frames", type=int, default=None, help="Stop after this many camera frames.")
+@_friendly_errors
+def run(dataset, estimator, out_dir, config_path, max_points, no_odometry, max_frames) -> None:
+    """Run an estimator over a dataset folder; write trajectory.tum, points.ply, metrics.json, config.yaml."""
+    from dem_graph.run import load_run_config, run_estimator, summary_lines, write_run
+
+    sequence = _open_dataset(dataset)
+    config = load_run_config(config_path, estimator=estimator, max_points=max_points, no_odometry=no_odometry, max_frames=max_frames)
+    result = run_estimator(sequence, config)
+    paths = write_run(result, out_dir)
+    for line in summary_lines(result):
+        click.echo(line)
+    click.echo(f"run folder: {out_dir} ({', '.join(p.name for p in paths.values())})")
+    if result.error:
+        click.echo(f"dem-graph: error: {result.error} (results up to there were written)", err=True)
+        sys.exit(2)
+
+
 @main.command("bench-sim")
 @click.option("--scenario", "scenario_name", default="paper", show_default=True, help="Scenario to benchmark.")
 @click.option("--frames", "n_frames", type=int, default=40, show_default=True, help="Frames to render for the timing.")

@@ -14,12 +14,13 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+import yaml
+from pydantic import Field, ValidationError
 
-from dem_graph.config_types import StrictModel
+from dem_graph.config_types import StrictModel, format_validation_error
 from dem_graph.datasets.base import Sequence
 from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
-from dem_graph.errors import DemGraphError
+from dem_graph.errors import ConfigError, DemGraphError
 from dem_graph.estimators.base import Estimator, EstimatorResult
 from dem_graph.estimators.ekf import EkfConfig, EkfSlam
 from dem_graph.evaluation.run_output import frame_timing_summary, write_run_outputs
@@ -102,6 +103,47 @@ def compute_metrics(sequence: Sequence, run: RunResult) -> dict:
         later = nees[1:]
         metrics["pose_nees"] = {"median": float(np.median(later)), "fraction_within_95": float(np.mean((later >= lo) & (later <= hi))), "fraction_below_upper_95": float(np.mean(later <= hi))}
     return metrics
+
+
+def load_run_config(path: str | Path | None = None, estimator: str | None = None, max_points: int | None = None, no_odometry: bool = False, max_frames: int | None = None) -> RunConfig:
+    """The run configuration: defaults, then the YAML file at ``path``, then the given overrides."""
+    data: dict = {}
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError("configuration file not found", path)
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except (yaml.YAMLError, OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"cannot read the configuration ({str(exc).splitlines()[0]})", path) from None
+        if not isinstance(data, dict):
+            raise ConfigError("a run configuration must be a mapping", path)
+    try:
+        config = RunConfig.model_validate(data)
+        if estimator is not None:
+            config.estimator = estimator
+        if max_frames is not None:
+            config.max_frames = max_frames
+        if max_points is not None:
+            config.ekf.frontend.max_points = max_points
+        if no_odometry:
+            config.ekf.motion.model = "constant_velocity"
+    except ValidationError as exc:
+        raise ConfigError(f"invalid run configuration: {format_validation_error(exc)}", path) from None
+    return config
+
+
+def summary_lines(run: RunResult) -> list[str]:
+    m = run.metrics
+    lines = [f"{m.get('estimator')}: {m.get('frames', 0)} frames in {m.get('elapsed_s', 0.0):.1f} s"]
+    if "time_per_frame" in m:
+        t = m["time_per_frame"]["total"]
+        p = m["points_per_frame"]
+        lines.append(f"time per frame: median {t['median_ms']:.1f} ms, p95 {t['p95_ms']:.1f} ms; live points median {p['live_median']:.0f}, tracked {p['tracked_median']:.0f}")
+    if "trajectory" in m:
+        tr = m["trajectory"]
+        lines.append(f"ATE RMSE {tr['ate_rmse_m']:.3f} m, final error {tr['final_error_m']:.3f} m over {tr['distance_m']:.1f} m: drift {tr['drift_percent']:.2f} %")
+    return lines
 
 
 def write_run(run: RunResult, out_dir: str | Path) -> dict[str, Path]:

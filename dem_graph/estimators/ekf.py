@@ -76,7 +76,10 @@ class EkfSlam(Estimator):
         self._rng = np.random.default_rng(self.config.inject_seed)
         self._gate = chi2.ppf(self.config.frontend.tracker.gate_probability, 2)
         self._R = self.config.frontend.sigma_px**2
-        self.last_search_sizes: list[tuple[int, int]] = []  # per tracked point of the last frame, in order
+        # per point searched in the last frame, in search order: the region's half sizes (px) as
+        # searched, and (PTPM) as the prior covariance of the frame would have made it
+        self.last_search_sizes: list[tuple[int, int]] = []
+        self.last_prior_search_sizes: list[tuple[int, int]] = []
 
     # --- events ------------------------------------------------------------------------------
     def on_odometry(self, event: Odometry) -> None:
@@ -165,6 +168,7 @@ class EkfSlam(Estimator):
     def _track_and_update(self, image) -> tuple[int, float, float]:
         st = self.state
         self.last_search_sizes = []
+        self.last_prior_search_sizes = []
         if st.n_points == 0:
             return 0, 0.0, 0.0
         t0 = time.perf_counter()
@@ -195,6 +199,8 @@ class EkfSlam(Estimator):
         S_all = st.innovation_covariances(Hp, Hx, self._R)
         gains = np.where(in_front, np.linalg.slogdet(S_all / self._R)[1], -np.inf)
         order = [int(i) for i in np.argsort(-gains) if np.isfinite(gains[i])]
+        gamma = fe.tracker.gate_chi2
+        self.last_prior_search_sizes = [(int(np.ceil(np.sqrt(gamma * S_all[i][0, 0]))), int(np.ceil(np.sqrt(gamma * S_all[i][1, 1])))) for i in order]
         t_track = time.perf_counter() - t0
         t_update = 0.0
         st.begin_sequential(len(order))
