@@ -111,6 +111,24 @@ def run(dataset, estimator, out_dir, config_path, max_points, no_odometry, max_f
         sys.exit(2)
 
 
+@main.command()
+@click.option("--estimators", default="gm,ptpm", show_default=True, help="Comma-separated estimators.")
+@click.option("--points", default="50,100,150,200,300", show_default=True, help="Comma-separated caps on live points.")
+@click.option("--scenario", "scenario_name", default="demo", show_default=True, help="Simulated scenario to replay.")
+@click.option("--frames", type=int, default=150, show_default=True, help="Camera frames per run.")
+@_friendly_errors
+def bench(estimators, points, scenario_name, frames) -> None:
+    """Benchmark the estimators: time per frame against the number of points, tracking included."""
+    from dem_graph.evaluation.bench_estimators import bench_estimators
+
+    try:
+        counts = tuple(int(x) for x in points.split(","))
+    except ValueError:
+        raise click.BadParameter(f"not a list of integers: {points}", param_hint="--points") from None
+    result = bench_estimators(tuple(x.strip() for x in estimators.split(",")), counts, scenario_name, frames)
+    click.echo(result.table())
+
+
 @main.command("bench-sim")
 @click.option("--scenario", "scenario_name", default="paper", show_default=True, help="Scenario to benchmark.")
 @click.option("--frames", "n_frames", type=int, default=40, show_default=True, help="Frames to render for the timing.")

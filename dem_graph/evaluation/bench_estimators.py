@@ -1,0 +1,98 @@
+"""Estimator benchmark: time per frame against the number of live points (the paper's Fig. 12).
+
+The log is simulated once and held in memory, so only the estimator (tracking included) is timed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dem_graph.datasets.events import CameraFrame
+from dem_graph.datasets.memory import InMemorySequence
+from dem_graph.evaluation.timing import TimingStats, format_table, machine_description
+from dem_graph.frontend.focus import FocusArea
+from dem_graph.progress import progress
+from dem_graph.run import RunConfig, run_estimator
+from dem_graph.sim.scenarios import scenario
+from dem_graph.sim.simulator import SimulatedSequence
+
+
+@dataclass(frozen=True)
+class BenchRow:
+    estimator: str
+    max_points: int
+    frame: TimingStats
+    tracking: TimingStats
+    update: TimingStats
+    live_points_median: float
+    tracked_points_median: float
+    drift_percent: float
+
+    @property
+    def frames_per_s(self) -> float:
+        return 1000.0 / self.frame.median_ms
+
+    @property
+    def points_per_s(self) -> float:
+        return self.tracked_points_median * self.frames_per_s
+
+
+@dataclass(frozen=True)
+class EstimatorBenchResult:
+    rows: list[BenchRow]
+    scenario: str
+    frames: int
+    image_size: str
+    machine: str
+
+    def table(self) -> str:
+        rows = [
+            [r.estimator, r.max_points, f"{r.live_points_median:.0f}", f"{r.tracked_points_median:.0f}", f"{r.frame.median_ms:.1f}", f"{r.frame.p95_ms:.1f}", f"{r.tracking.median_ms:.1f}", f"{r.update.median_ms:.1f}", f"{r.frames_per_s:.1f}", f"{r.points_per_s:.0f}", f"{r.drift_percent:.2f}"]
+            for r in self.rows
+        ]
+        headers = ["estimator", "cap n", "live", "tracked", "frame ms (median)", "frame ms (p95)", "tracking ms", "update ms", "frames/s", "points/s", "drift %"]
+        return format_table(headers, rows, title=f"estimator benchmark: '{self.scenario}' {self.image_size}, {self.frames} frames, on {self.machine}")
+
+
+def _config_for(estimator: str, max_points: int, rig) -> RunConfig:
+    config = RunConfig(estimator=estimator)
+    fe = config.ekf.frontend
+    fe.max_points = max_points
+    fe.max_laser_points = int(round(0.7 * max_points))
+    # about as many focus cells as points wanted, so that the cap is what limits
+    focus = FocusArea.for_speed(fe.focus, rig, None)
+    area = (focus.x_far_m - focus.x_near_m) * 2 * focus.half_width_m
+    fe.focus.cell_size_m = float(np.sqrt(area / (0.8 * max_points)))
+    fe.min_separation_px = min(fe.min_separation_px, 6.0)
+    return config
+
+
+def bench_estimators(estimators=("gm", "ptpm"), point_counts=(50, 100, 150, 200, 300), scenario_name: str = "demo", frames: int = 150, seed: int = 0) -> EstimatorBenchResult:
+    sim = SimulatedSequence.from_config(scenario(scenario_name, seed=seed))
+    events = []
+    for e in sim.events():
+        events.append(e)
+        if isinstance(e, CameraFrame) and e.index + 1 >= frames:
+            break
+    log = InMemorySequence(sim.rig, events, sim.T_world_body_initial, sim.t_start_s, sim.ground_truth, sim.name)
+    rows = []
+    for name in estimators:
+        for n in progress(point_counts, total=len(point_counts), desc=f"bench {name}"):
+            run = run_estimator(log, _config_for(name, n, sim.rig))
+            fr = run.estimator.frames[5:]  # skip the start, while the map fills
+            rows.append(
+                BenchRow(
+                    name,
+                    n,
+                    TimingStats.from_seconds([f.timing_s["total"] for f in fr]),
+                    TimingStats.from_seconds([f.timing_s["tracking"] for f in fr]),
+                    TimingStats.from_seconds([f.timing_s["update"] for f in fr]),
+                    float(np.median([f.n_live for f in fr])),
+                    float(np.median([f.n_tracked for f in fr])),
+                    float(run.metrics["trajectory"]["drift_percent"]),
+                )
+            )
+    cam = sim.rig.camera
+    return EstimatorBenchResult(rows, scenario_name, frames, f"{cam.width_px}x{cam.height_px}", machine_description())
