@@ -16,6 +16,7 @@ test: setup
 
 bench: setup
 	$(BIN)/dem-graph bench-sim
+	$(BIN)/dem-graph bench
 
 setup: $(VENV)/.installed
 
