@@ -71,6 +71,7 @@ def run_estimator(sequence: Sequence, config: RunConfig | None = None) -> RunRes
                 estimator.on_scan(event)
             elif isinstance(event, Odometry):
                 estimator.on_odometry(event)
+        estimator.finish()
     except DemGraphError as exc:
         error = str(exc)
         log.error("run stopped after %d frames: %s", frames, exc)

@@ -82,7 +82,11 @@ class Estimator(abc.ABC):
     def on_scan(self, event: LaserScan) -> None: ...
 
     @abc.abstractmethod
-    def on_frame(self, event: CameraFrame) -> FrameRecord: ...
+    def on_frame(self, event: CameraFrame) -> FrameRecord | None:
+        """Process a frame (or hold it briefly, e.g. until the odometry covering it arrives)."""
+
+    def finish(self) -> None:
+        """The log has ended: process anything held back."""
 
     @abc.abstractmethod
     def result(self) -> EstimatorResult:

@@ -38,6 +38,7 @@ class MotionConfig(StrictModel):
     sigma_linear_acc_mps2: float = Field(1.5, gt=0, description="constant-velocity model: linear acceleration noise, m/s^2/sqrt(Hz)")
     initial_speed_mps: float = Field(0.0, description="constant-velocity model: initial forward speed, m/s")
     initial_sigma_speed_mps: float = Field(1.0, gt=0, description="constant-velocity model: initial speed uncertainty, m/s")
+    wait_for_odometry: bool = Field(True, description="hold a frame until the odometry covering its time arrives (instead of extrapolating)")
     initial_sigma_pose: float = Field(1e-4, gt=0, description="initial pose uncertainty (radians and metres); the estimate is anchored at the initial pose")
 
 
@@ -72,6 +73,7 @@ class EkfSlam(Estimator):
         self._odometry_cursor_s = self.t_s
         self._last_twist_rate: np.ndarray | None = None
         self._scans: list[LaserScan] = []
+        self._pending_frame: CameraFrame | None = None
         self._result = EstimatorResult(self.name)
         self._rng = np.random.default_rng(self.config.inject_seed)
         self._gate = chi2.ppf(self.config.frontend.tracker.gate_probability, 2)
@@ -84,11 +86,28 @@ class EkfSlam(Estimator):
     # --- events ------------------------------------------------------------------------------
     def on_odometry(self, event: Odometry) -> None:
         self._odometry.append(event)
+        if self._pending_frame is not None and event.t_s >= self._pending_frame.t_s:
+            self._process(self._pending_frame)
 
     def on_scan(self, event: LaserScan) -> None:
         self._scans.append(event)
 
-    def on_frame(self, event: CameraFrame) -> FrameRecord:
+    def on_frame(self, event: CameraFrame) -> FrameRecord | None:
+        """Process the frame, or (with odometry) hold it until the odometry covering its time has
+        arrived, at most one odometry period later: the motion is then measured, not extrapolated."""
+        if self._pending_frame is not None:
+            self._process(self._pending_frame)
+        if self.use_odometry and self.config.motion.wait_for_odometry and not any(e.t_s >= event.t_s for e in self._odometry):
+            self._pending_frame = event
+            return None
+        return self._process(event)
+
+    def finish(self) -> None:
+        if self._pending_frame is not None:
+            self._process(self._pending_frame)
+
+    def _process(self, event: CameraFrame) -> FrameRecord:
+        self._pending_frame = None
         timing = {}
         t0 = time.perf_counter()
         self._predict(event.t_s)
