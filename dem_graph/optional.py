@@ -23,6 +23,3 @@ def import_open3d():
 def import_rasterio():
     return _import("rasterio", "pip install rasterio")
 
-
-def import_rosbags():
-    return _import("rosbags", "pip install 'dem-graph[ros]'")

@@ -85,7 +85,7 @@ class Estimator(abc.ABC):
     def on_frame(self, event: CameraFrame) -> FrameRecord | None:
         """Process a frame (or hold it briefly, e.g. until the odometry covering it arrives)."""
 
-    def finish(self) -> None:
+    def finish(self) -> None:  # noqa: B027 - a hook with nothing to do by default
         """The log has ended: process anything held back."""
 
     @abc.abstractmethod

@@ -49,10 +49,6 @@ class EkfState:
     def dim(self) -> int:
         return N_BASE + 3 * self.n_points
 
-    def index_of(self, point_id: int) -> int:
-        idx = np.flatnonzero(self.point_ids == point_id)
-        return int(idx[0]) if len(idx) else -1
-
     def point_covariance(self, i: int) -> np.ndarray:
         c = point_cols(i)
         return self.P[c, c].copy()

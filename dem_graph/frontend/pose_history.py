@@ -35,10 +35,6 @@ class PoseHistory:
     def __len__(self) -> int:
         return len(self._t)
 
-    @property
-    def latest_t_s(self) -> float:
-        return self._t[-1]
-
     def at(self, t_s: float) -> np.ndarray:
         """``T_world_body`` at ``t_s``: spline inside the history's span, linear just beyond it."""
         t = np.array(self._t)

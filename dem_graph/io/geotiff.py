@@ -17,18 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from dem_graph.errors import DatasetError, MissingDependencyError
+from dem_graph.errors import DatasetError
 from dem_graph.geometry.grid import ElevationGrid, GridGeometry
+from dem_graph.optional import import_rasterio
 
 ELEVATION_BAND = "elevation"
-
-
-def _rasterio():
-    try:
-        import rasterio
-    except ImportError:
-        raise MissingDependencyError("rasterio", "pip install rasterio") from None
-    return rasterio
 
 
 def _first_line(exc: BaseException) -> str:
@@ -47,7 +40,7 @@ def write_elevation_geotiff(
     (the simulator's ground-truth elevation is). Raises :class:`DatasetError` naming the file when a
     band is invalid or the file cannot be written.
     """
-    rasterio = _rasterio()
+    rasterio = import_rasterio()
     path = Path(path)
     geometry = grid.geometry if isinstance(grid, ElevationGrid) else grid
     if not isinstance(geometry, GridGeometry):
@@ -100,7 +93,7 @@ def read_elevation_geotiff(path: str | Path) -> tuple[GridGeometry, dict[str, np
     nodata value are returned as NaN. Raises :class:`DatasetError` naming the file when it is
     missing or not a readable GeoTIFF, is not north-up with square pixels, or repeats a band name.
     """
-    rasterio = _rasterio()
+    rasterio = import_rasterio()
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "file not found" if not path.exists() else "not a regular file")
