@@ -1,5 +1,5 @@
 # Two commands do everything on a fresh Debian/Ubuntu machine with Python >= 3.10:
-#   make demo   set up, then simulate the default scenario and write its dataset and picture
+#   make demo   set up, simulate the default scenario (dataset + picture), run the EKF baselines on it
 #   make test   set up, then run the test suite
 PYTHON ?= python3
 VENV ?= .venv
@@ -10,6 +10,8 @@ OUT ?= out
 
 demo: setup
 	$(BIN)/dem-graph simulate --scenario demo --out $(OUT)/demo/dataset --overwrite
+	$(BIN)/dem-graph run $(OUT)/demo/dataset --estimator gm --out $(OUT)/demo/run_gm
+	$(BIN)/dem-graph run $(OUT)/demo/dataset --estimator ptpm --out $(OUT)/demo/run_ptpm
 
 test: setup
 	$(BIN)/python -m pytest -q
