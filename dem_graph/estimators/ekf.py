@@ -114,7 +114,7 @@ class EkfSlam(Estimator):
         t1 = time.perf_counter()
         timing["prediction"] = t1 - t0
         image = event.image
-        n_tracked, t_track, t_update = self._track_and_update(image)
+        n_tracked, t_track, t_update = self._track_and_update(image, event.t_s)
         timing["tracking"], timing["update"] = t_track, t_update
         t2 = time.perf_counter()
         self.history.append(event.t_s, self.state.T_world_body)
@@ -184,7 +184,7 @@ class EkfSlam(Estimator):
         base = uv_found if uv_found is not None else uv_true_guess
         return base + self.config.inject_false_match_offset_px * np.array([np.cos(a), np.sin(a)]), True
 
-    def _track_and_update(self, image) -> tuple[int, float, float]:
+    def _track_and_update(self, image, t_s: float) -> tuple[int, float, float]:
         st = self.state
         self.last_search_sizes = []
         self.last_prior_search_sizes = []
@@ -194,12 +194,13 @@ class EkfSlam(Estimator):
         fe = self.frontend
         idx = np.arange(st.n_points)
         uv, Hp, Hx, in_front, _ = st.observe(idx, self.rig.camera_model, self.rig.T_body_cam)
-        homographies = fe.ground_homographies(st.point_ids, st.points_xyz, self._camera_pose())
+        T_wc = self._camera_pose()  # predicted; patches refreshed in this frame are tied to it
+        homographies = fe.ground_homographies(st.point_ids, st.points_xyz, T_wc)
         if self.config.variant == "gm":
             half = self.config.gm_search_half_size_px
             ok_idx, innov = [], []
             for i in idx[in_front]:
-                res = fe.track(image, int(st.point_ids[i]), homographies[i], uv[i], half_size_px=half)
+                res = fe.track(image, int(st.point_ids[i]), homographies[i], uv[i], half_size_px=half, t_s=t_s, T_world_cam=T_wc)
                 self.last_search_sizes.append(res.search_half_size_px)
                 found, injected = self._inject(res.uv_px if res.ok else None, uv[i])
                 if found is None:
@@ -230,7 +231,7 @@ class EkfSlam(Estimator):
                 d_pose, d_point = st.correction(i)
                 uv_i = uv[i] + Hp[i] @ d_pose + Hx[i] @ d_point
                 S = st.sequential_innovation_covariance(i, Hp[i], Hx[i], self._R)
-                res = fe.track(image, int(st.point_ids[i]), homographies[i], uv_i, S_px2=S)
+                res = fe.track(image, int(st.point_ids[i]), homographies[i], uv_i, S_px2=S, t_s=t_s, T_world_cam=T_wc)
                 self.last_search_sizes.append(res.search_half_size_px)
                 found, injected = self._inject(res.uv_px if res.ok else None, uv_i)
                 tb = time.perf_counter()

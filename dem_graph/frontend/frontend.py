@@ -43,6 +43,7 @@ class FrontendConfig(StrictModel):
     camera_point_sigma_px: float = Field(1.0, gt=0, description="across-ray uncertainty of a new camera point, pixels")
     interpolation_sigma_m: float = Field(0.002, ge=0, description="uncertainty added by interpolating the pose at a scan's time, metres")
     warp_patches: bool = Field(True, description="warp patches by the ground-plane homography between the two views")
+    refresh_patch_every: int = Field(20, ge=0, description="re-record a point's patch at its tracked position every this many successful tracks (0: never)")
     sigma_px: float = Field(1.0, gt=0, description="standard deviation of a tracked position, pixels")
 
 
@@ -108,9 +109,11 @@ class FrontEnd:
             out.append(H)
         return out
 
-    def track(self, image, point_id: int, H_src_to_cur, uv_pred, S_px2=None, half_size_px=None) -> TrackResult:
+    def track(self, image, point_id: int, H_src_to_cur, uv_pred, S_px2=None, half_size_px=None, t_s: float = 0.0, T_world_cam=None) -> TrackResult:
         """Track one point: its patch warped by ``H_src_to_cur`` (or not, if None), searched around
-        ``uv_pred`` in the chi-square region of ``S_px2`` or the square of ``half_size_px``."""
+        ``uv_pred`` in the chi-square region of ``S_px2`` or the square of ``half_size_px``.
+        With ``refresh_patch_every``, the patch is re-recorded at the match (taken at ``t_s`` from
+        the camera pose estimate ``T_world_cam``)."""
         track = self.tracks[point_id]
         template = self.tracker.template(track.patch, H_src_to_cur, uv_pred)
         result = self.tracker.track(image, template, uv_pred, S_px2=S_px2, half_size_px=half_size_px)
@@ -118,6 +121,13 @@ class FrontEnd:
         if result.ok:
             track.misses = 0
             track.n_tracked += 1
+            every = self.config.refresh_patch_every
+            if every and T_world_cam is not None and track.n_tracked % every == 0:
+                patch = self.tracker.make_patch(image, result.uv_px, t_s)
+                if patch is not None:
+                    track.patch = patch
+                    track.T_world_cam_source = np.array(T_world_cam)
+                    self.counters["patch_refreshed"] += 1
         else:
             track.misses += 1
         return result
