@@ -180,24 +180,32 @@ class FrontEnd:
         beams, p_body, uv = beams[ok], p_body[ok], uv[ok]
         # spread: evenly spaced candidates along the scan
         order = np.linspace(0, len(beams) - 1, min(len(beams), 2 * budget + 1)).round().astype(int) if len(beams) else []
-        T_world_cam = T_world_body @ self.T_body_cam
-        occupied = list(occupied_uv)
         R_ray = T_body_laser_now[:3, :3]
         sigma_r = laser.range_sigma_m
         out: list[NewPoint] = []
-        for k in np.unique(order):
-            if len(out) >= budget:
-                break
-            if not self._far_from(uv[k], np.asarray(occupied).reshape(-1, 2)):
-                continue
-            point_id = self._register(LASER, image, uv[k], t_s, T_world_cam)
-            if point_id is None:
-                continue
+        for k, point_id in self._seed(LASER, np.unique(order), uv, budget, occupied_uv, image, t_s, T_world_body):
             d = R_ray @ dirs[beams[k]]
             Sigma = sigma_r**2 * np.outer(d, d) + self.config.interpolation_sigma_m**2 * np.eye(3)
             out.append(NewPoint(point_id, LASER, p_body[k], Sigma))
-            occupied.append(uv[k])
         return out
+
+    def _seed(self, kind: int, candidates, uv: np.ndarray, budget: int, occupied_uv: np.ndarray, image, t_s: float, T_world_body: np.ndarray):
+        """Yield ``(candidate index, new point id)`` for candidates in order, at most ``budget``, each
+        at least ``min_separation_px`` from live and newly seeded points and with a trackable patch."""
+        T_world_cam = T_world_body @ self.T_body_cam
+        occupied = list(occupied_uv)
+        n = 0
+        for k in candidates:
+            if n >= budget:
+                return
+            if not self._far_from(uv[k], np.asarray(occupied).reshape(-1, 2)):
+                continue
+            point_id = self._register(kind, image, uv[k], t_s, T_world_cam)
+            if point_id is None:
+                continue
+            occupied.append(uv[k])
+            n += 1
+            yield k, point_id
 
     def new_camera_points(self, image, t_s, T_world_body, focus: FocusArea, live_points_body: np.ndarray, occupied_uv: np.ndarray) -> list[NewPoint]:
         """Points at the empty focus cells, on the flat ground of the current body frame."""
@@ -215,18 +223,9 @@ class FrontEnd:
         uv, in_front = self.camera.project(transform_points(self.T_cam_body, cells[free]))
         ok = in_front & self.camera.in_image(uv, self.config.image_margin_px + self.config.tracker.patch_half_size_px)
         free, uv = free[ok], uv[ok]
-        T_world_cam = T_world_body @ self.T_body_cam
         o = self.T_body_cam[:3, 3]
-        occupied = list(occupied_uv)
         out: list[NewPoint] = []
-        for k in range(len(free)):
-            if len(out) >= budget:
-                break
-            if not self._far_from(uv[k], np.asarray(occupied).reshape(-1, 2)):
-                continue
-            point_id = self._register(CAMERA, image, uv[k], t_s, T_world_cam)
-            if point_id is None:
-                continue
+        for k, point_id in self._seed(CAMERA, range(len(free)), uv, budget, occupied_uv, image, t_s, T_world_body):
             p = cells[free[k]]
             ray = p - o
             depth = np.linalg.norm(ray)
@@ -236,7 +235,6 @@ class FrontEnd:
             sigma_across = self.config.camera_point_sigma_px * depth / self.camera.fx_px
             Sigma = sigma_along**2 * np.outer(r, r) + sigma_across**2 * (np.eye(3) - np.outer(r, r))
             out.append(NewPoint(point_id, CAMERA, p, Sigma))
-            occupied.append(uv[k])
         return out
 
     def drop(self, point_id: int, reason: str) -> PointTrack:
