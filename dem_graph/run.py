@@ -11,7 +11,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 import yaml
@@ -29,11 +29,12 @@ from dem_graph.progress import progress
 
 log = logging.getLogger(__name__)
 
-ESTIMATORS = ("gm", "ptpm")
+EstimatorName = Literal["gm", "ptpm"]
+ESTIMATORS = get_args(EstimatorName)
 
 
 class RunConfig(StrictModel):
-    estimator: Literal["gm", "ptpm"] = Field("ptpm", description="which estimator")
+    estimator: EstimatorName = Field("ptpm", description="which estimator")
     ekf: EkfConfig = Field(default_factory=EkfConfig, description="EKF baselines (gm, ptpm)")
     max_frames: int | None = Field(None, ge=1, description="stop after this many camera frames")
 

@@ -17,12 +17,11 @@ from typing import Literal
 
 import numpy as np
 from pydantic import Field
-from scipy.stats import chi2
 
 from dem_graph.config_types import StrictModel
 from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
 from dem_graph.estimators.base import Estimator, EstimatorResult, FrameRecord
-from dem_graph.estimators.ekf_filter import EkfState, point_cols
+from dem_graph.estimators.ekf_filter import EkfState
 from dem_graph.frontend.frontend import FrontEnd, FrontendConfig
 from dem_graph.frontend.pose_history import PoseHistory
 from dem_graph.geometry.lie import adjoint, scale_increment
@@ -76,7 +75,7 @@ class EkfSlam(Estimator):
         self._pending_frame: CameraFrame | None = None
         self._result = EstimatorResult(self.name)
         self._rng = np.random.default_rng(self.config.inject_seed)
-        self._gate = chi2.ppf(self.config.frontend.tracker.gate_probability, 2)
+        self._gate = self.frontend.tracker.gate_chi2
         self._R = self.config.frontend.sigma_px**2
         # per point searched in the last frame, in search order: the region's half sizes (px) as
         # searched, and (PTPM) as the prior covariance of the frame would have made it
@@ -271,15 +270,16 @@ class EkfSlam(Estimator):
         uv, in_front = cam.project(transform_points(T_cam_world, st.points_xyz))
         p_body = transform_points(invert(st.T_world_body), st.points_xyz)
         margin = self.config.frontend.image_margin_px + self.config.frontend.tracker.patch_half_size_px
+        visible = cam.in_image(uv, margin)
+        max_misses = self.config.frontend.max_misses
         remove = np.zeros(st.n_points, dtype=bool)
         for i in range(st.n_points):
-            track = self.frontend.tracks[int(st.point_ids[i])]
             reason = None
             if not in_front[i] or p_body[i, 0] < 0.0:
                 reason = "behind"
-            elif not cam.in_image(uv[i : i + 1], margin)[0]:
+            elif not visible[i]:
                 reason = "left_image"
-            elif track.misses >= self.config.frontend.max_misses:
+            elif self.frontend.tracks[int(st.point_ids[i])].misses >= max_misses:
                 reason = "lost"
             if reason:
                 self._archive(i, reason)
@@ -326,4 +326,4 @@ class EkfSlam(Estimator):
         return res
 
 
-__all__ = ["EkfConfig", "EkfSlam", "MotionConfig", "point_cols"]
+__all__ = ["EkfConfig", "EkfSlam", "MotionConfig"]

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from dem_graph.geometry.camera import PinholeCamera
-from dem_graph.geometry.lie import adjoint, retract, skew
+from dem_graph.geometry.lie import adjoint, local, retract, skew
 from dem_graph.geometry.se3 import invert
 
 POSE = slice(0, 6)
@@ -68,8 +68,6 @@ class EkfState:
         P[POSE, POSE] += Q_U
         self.T_world_body = self.T_world_body @ U
         if dt_s > 0:
-            from dem_graph.geometry.lie import local
-
             self.v_body = local(np.eye(4), U) / dt_s
             P[VEL, :] = 0.0
             P[:, VEL] = 0.0
