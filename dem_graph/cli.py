@@ -113,7 +113,7 @@ def run(dataset, estimator, out_dir, config_path, max_points, no_odometry, max_f
 
 @main.command()
 @click.option("--estimators", default="gm,ptpm", show_default=True, help="Comma-separated estimators.")
-@click.option("--points", default="50,100,150,200,300", show_default=True, help="Comma-separated caps on live points.")
+@click.option("--points", default="50,100,130,150,200,300", show_default=True, help="Comma-separated caps on live points.")
 @click.option("--scenario", "scenario_name", default="demo", show_default=True, help="Simulated scenario to replay.")
 @click.option("--frames", type=int, default=150, show_default=True, help="Camera frames per run.")
 @_friendly_errors

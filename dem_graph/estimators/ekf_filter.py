@@ -1,8 +1,26 @@
 """The EKF of the paper (III-B): one pose, its velocity and the live map points in one state.
 
-State: ``T_world_body`` (error as a right perturbation [rotation, translation]), the body twist
-``v_body`` ([angular rad/s, linear m/s], used by the constant-velocity model) and ``n`` world
-points. Covariance ``P`` has the layout ``[pose 0:6, velocity 6:12, point i at 12+3i]``.
+State: ``T_world_body``, the body twist ``v_body`` ([angular rad/s, linear m/s], used by the
+constant-velocity model) and ``n`` world points. Covariance ``P`` has the layout
+``[pose 0:6, velocity 6:12, point i at 12+3i]``.
+
+Error coordinates (why the filter stays consistent)
+---------------------------------------------------
+Pose and points share one world-frame ("right-invariant") error, as in the invariant EKF for SLAM
+(Barrau and Bonnabel, 2015): with ``e = [omega, nu, dv, xi_1 .. xi_n]``,
+
+    R = Exp(omega) R_hat,   t = Exp(omega) t_hat + nu,   X_i = Exp(omega) X_hat_i + xi_i,   v = v_hat + dv.
+
+A change of the world frame (which no sensor here observes) is then the constant direction
+``omega = w, nu = xi_i = u`` whatever the estimate, so the linearised filter cannot gain
+information along it. With the usual body-frame pose error and independent point errors, that
+direction moves with the estimate and the filter grows overconfident on long runs (pose NEES in
+the hundreds on the ``paper`` scenario with ideal measurements). The cost is that a rotation
+noise couples into every point: the prediction is a rank-6 update of the full covariance.
+
+:meth:`EkfState.pose_covariance` and :meth:`EkfState.point_covariance` convert to the package's
+conventions (right perturbation of the pose, world-frame point covariance); the constructor takes
+the initial pose covariance in the right-perturbation convention.
 
 Updates come in two forms, as in the paper: a batch update with every match of an image (GM) and
 sequential one-point updates (PTPM). Sequential updates keep the covariance as ``P0 - L L^T`` and
@@ -16,12 +34,15 @@ from __future__ import annotations
 import numpy as np
 
 from dem_graph.geometry.camera import PinholeCamera
-from dem_graph.geometry.lie import adjoint, local, retract, skew
+from dem_graph.geometry.lie import adjoint, local, retract, skew, so3_exp
 from dem_graph.geometry.se3 import invert
 
 POSE = slice(0, 6)
+ROT = slice(0, 3)
+POS = slice(3, 6)
 VEL = slice(6, 12)
 N_BASE = 12
+RECENTER_M = 1.0  # the rotation error is centred within this distance of the vehicle, metres
 
 
 def point_cols(i: int) -> slice:
@@ -30,12 +51,15 @@ def point_cols(i: int) -> slice:
 
 class EkfState:
     def __init__(self, T_world_body: np.ndarray, P_pose: np.ndarray, v_body: np.ndarray, P_vel: np.ndarray):
+        """``P_pose``: covariance of the right perturbation of ``T_world_body`` ([rot, trans])."""
         self.T_world_body = np.array(T_world_body, dtype=float)
         self.v_body = np.array(v_body, dtype=float)
         self.points_xyz = np.zeros((0, 3))
         self.point_ids = np.zeros(0, dtype=np.int64)
+        self.origin = self.T_world_body[:3, 3].copy()  # centre of the rotation error, see recenter()
         self.P = np.zeros((N_BASE, N_BASE))
-        self.P[POSE, POSE] = P_pose
+        A = adjoint(self._T_about_origin())
+        self.P[POSE, POSE] = A @ np.asarray(P_pose, dtype=float) @ A.T
         self.P[VEL, VEL] = P_vel
         self._L: np.ndarray | None = None  # pending low-rank downdate of P (sequential mode)
         self._L_cols = 0
@@ -50,25 +74,74 @@ class EkfState:
         return N_BASE + 3 * self.n_points
 
     def point_covariance(self, i: int) -> np.ndarray:
+        """World-frame covariance of point ``i``: ``dX = xi_i - skew(X_hat) omega``."""
         c = point_cols(i)
-        return self.P[c, c].copy()
+        A = -skew(self.points_xyz[i] - self.origin)
+        P = self.P
+        AP = A @ P[ROT, c]
+        return A @ P[ROT, ROT] @ A.T + AP + AP.T + P[c, c]
 
     def pose_covariance(self) -> np.ndarray:
-        return self.P[POSE, POSE].copy()
+        """Covariance of the right perturbation of ``T_world_body`` ([rot, trans], body frame)."""
+        A = adjoint(invert(self._T_about_origin()))
+        return A @ self.P[POSE, POSE] @ A.T
+
+    def _T_about_origin(self) -> np.ndarray:
+        T = self.T_world_body.copy()
+        T[:3, 3] -= self.origin
+        return T
+
+    def recenter(self, origin: np.ndarray) -> None:
+        """Move the centre of the rotation error to ``origin`` (world, metres); an exact change of
+        coordinates to first order. The prediction keeps it near the vehicle so that corrections of
+        the rotation do not swing positions far from it by second-order terms (which would bias a
+        long run towards the starting point)."""
+        self._require_batch_mode()
+        d = np.asarray(origin, dtype=float) - self.origin
+        if not np.any(d):
+            return
+        # nu and every xi gain -skew(d) omega: P <- M P M^T with M = I + C E_rot^T
+        C = np.zeros((self.dim, 3))
+        C[POS] = -skew(d)
+        C[N_BASE:] = np.tile(C[POS], (self.n_points, 1))
+        self._add_symmetric_low_rank(C, self.P[ROT, :], self.P[ROT, ROT])
+        self.origin = self.origin + d
+
+    def _keep_origin_near_vehicle(self) -> None:
+        t = self.T_world_body[:3, 3]
+        if np.sum((t - self.origin) ** 2) > RECENTER_M**2:
+            self.recenter(t)
+
+    def _add_symmetric_low_rank(self, C: np.ndarray, B: np.ndarray, D: np.ndarray) -> None:
+        """``P += C B + (C B)^T + C D C^T`` in one outer product (``C`` (N,k), ``B`` (k,N), ``D`` (k,k) symmetric)."""
+        V = B + 0.5 * D @ C.T
+        self.P += C @ V
+        self.P += V.T @ C.T  # a second product is cheaper than adding a transposed matrix
+
+    def _rotation_coupling(self, R_world: np.ndarray) -> np.ndarray:
+        """(N,3): how a world-frame rotation error ``R_world @ a`` enters every error coordinate."""
+        G = np.zeros((self.dim, 3))
+        G[ROT] = R_world
+        G[POS] = skew(self.T_world_body[:3, 3] - self.origin) @ R_world
+        if self.n_points:
+            G[N_BASE:] = (skew(self.points_xyz - self.origin) @ R_world).reshape(-1, 3)
+        return G
 
     # --- prediction ----------------------------------------------------------------------------
     def predict_increment(self, U: np.ndarray, Q_U: np.ndarray, dt_s: float) -> None:
         """Odometry: ``T <- T U`` with ``Q_U`` the increment's covariance ([rot, trans], right perturbation).
         The velocity is set to the increment's mean twist, with the increment's uncertainty."""
-        self._require_batch_mode()
-        A = adjoint(invert(U))
-        P = self.P
-        P[POSE, :] = A @ P[POSE, :]
-        P[:, POSE] = P[:, POSE] @ A.T
-        P[POSE, POSE] += Q_U
+        self._keep_origin_near_vehicle()
         self.T_world_body = self.T_world_body @ U
+        R = self.T_world_body[:3, :3]
+        # the error is invariant under the motion (F = I); only the increment's noise enters
+        G = np.zeros((self.dim, 6))
+        G[:, :3] = self._rotation_coupling(R)
+        G[POS, 3:] = R
+        self._add_symmetric_low_rank(G, np.zeros((6, self.dim)), Q_U)
         if dt_s > 0:
             self.v_body = local(np.eye(4), U) / dt_s
+            P = self.P
             P[VEL, :] = 0.0
             P[:, VEL] = 0.0
             P[VEL, VEL] = Q_U / dt_s**2 + np.eye(6) * 1e-6
@@ -76,37 +149,38 @@ class EkfState:
     def predict_constant_velocity(self, dt_s: float, sigma_acc: np.ndarray) -> None:
         """Constant-velocity model: ``T <- T Exp(v dt)``, ``v <- v + w`` with white acceleration
         ``sigma_acc`` (6,: [angular rad/s^2, linear m/s^2] per sqrt(Hz))."""
-        self._require_batch_mode()
-        E = retract(np.eye(4), self.v_body * dt_s)
-        A = adjoint(invert(E))
-        F = np.eye(N_BASE)
-        F[POSE, POSE] = A
-        F[POSE, VEL] = np.eye(6) * dt_s
+        self._keep_origin_near_vehicle()
+        R_before = self.T_world_body[:3, :3]
+        self.T_world_body = retract(self.T_world_body, self.v_body * dt_s)
+        R = self.T_world_body[:3, :3]
+        # B: how a body-velocity error (per unit time) and a right pose perturbation enter the state
+        B = np.zeros((self.dim, 6))
+        B[:, :3] = self._rotation_coupling(R)
+        B[POS, 3:] = R_before
         P = self.P
-        P[:N_BASE, :] = F @ P[:N_BASE, :]
-        P[:, :N_BASE] = P[:, :N_BASE] @ F.T
         q = np.diag(np.asarray(sigma_acc, dtype=float) ** 2) * dt_s
-        P[POSE, POSE] += q * dt_s**2 / 3.0
-        P[POSE, VEL] += q * dt_s / 2.0
-        P[VEL, POSE] += q * dt_s / 2.0
-        P[VEL, VEL] += q
-        self.T_world_body = self.T_world_body @ E
+        # F = I + dt B E_vel^T, then the integrated white acceleration: pose (as a right
+        # perturbation) and velocity noise
+        self._add_symmetric_low_rank(dt_s * B, P[VEL, :], P[VEL, VEL])
+        L = np.zeros((self.dim, 12))
+        L[:, :6] = B
+        L[VEL, 6:] = np.eye(6)
+        Qc = np.block([[q * dt_s**2 / 3.0, q * dt_s / 2.0], [q * dt_s / 2.0, q]])
+        self._add_symmetric_low_rank(L, np.zeros((12, self.dim)), Qc)
 
     # --- observation -------------------------------------------------------------------------
     def observe(self, indices: np.ndarray, camera: PinholeCamera, T_body_cam: np.ndarray):
-        """Predicted pixels of points ``indices`` and the Jacobians w.r.t. the pose (k,2,6) and the point (k,2,3).
-        Also returns the in-front mask and the camera-frame depths."""
+        """Predicted pixels of points ``indices`` and the Jacobians w.r.t. the pose error (k,2,6) and
+        the point error (k,2,3). Also returns the in-front mask and the camera-frame depths."""
         R_wb, t_wb = self.T_world_body[:3, :3], self.T_world_body[:3, 3]
         T_cam_body = invert(T_body_cam)
         R_cb = T_cam_body[:3, :3]
         p_body = (self.points_xyz[indices] - t_wb) @ R_wb  # R_wb^T (x - t)
         p_cam = p_body @ R_cb.T + T_cam_body[:3, 3]
         uv, J_uv_pc, in_front = camera.project_with_jacobian(p_cam)
-        J_uv_pb = J_uv_pc @ R_cb
-        # right perturbation of the pose: d p_body / d [dtheta, dt] = [skew(p_body), -I]
-        J_pb_pose = np.concatenate([skew(p_body), -np.broadcast_to(np.eye(3), (len(p_body), 3, 3))], axis=2)
-        H_pose = J_uv_pb @ J_pb_pose
-        H_point = J_uv_pb @ R_wb.T
+        # p_body = R^T (X - t) moves by R^T (xi - nu); the rotation error cancels out
+        H_point = J_uv_pc @ (R_cb @ R_wb.T)
+        H_pose = np.concatenate([np.zeros((len(p_body), 2, 3)), -H_point], axis=2)
         return uv, H_pose, H_point, in_front, p_cam[:, 2]
 
     def innovation_covariances(self, H_pose: np.ndarray, H_point: np.ndarray, R_px2: float) -> np.ndarray:
@@ -137,22 +211,28 @@ class EkfState:
         PHt = self.P @ H.T
         S = H @ PHt + R_px2 * np.eye(2 * k)
         K = np.linalg.solve(S, PHt.T).T
-        self._apply_correction(K @ innovations.reshape(-1))
+        self.apply_correction(K @ innovations.reshape(-1))
         self.P -= K @ PHt.T
         self._symmetrize()
 
     # --- sequential update (PTPM) ------------------------------------------------------------
-    # The covariance stays P0 - L L^T and the mean correction accumulates in dx until
+    # The covariance stays P0 - Lt^T Lt and the mean correction accumulates in dx until
     # end_sequential(); every point is linearised once, at the predicted state (as GM), and its
-    # prediction follows the corrections made so far to first order.
+    # prediction follows the corrections made so far to first order. Lt holds one row per
+    # measured coordinate, and P0 is only read by rows (contiguous; P is symmetric).
     def begin_sequential(self, max_updates: int) -> None:
-        self._L = np.zeros((self.dim, 2 * max(max_updates, 1)))
+        self._L = np.zeros((2 * max(max_updates, 1), self.dim))
         self._L_cols = 0
         self._dx = np.zeros(self.dim)
 
     def correction(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Accumulated (pose, point i) corrections of the current sequential session."""
         return self._dx[POSE], self._dx[point_cols(i)]
+
+    def _HL(self, c: slice, H_pose: np.ndarray, H_point: np.ndarray) -> np.ndarray:
+        """(2,k): the measurement Jacobian times the pending downdate factor."""
+        Lt = self._L[: self._L_cols]
+        return H_pose @ Lt[:, POSE].T + H_point @ Lt[:, c].T
 
     def sequential_innovation_covariance(self, i: int, H_pose: np.ndarray, H_point: np.ndarray, R_px2: float) -> np.ndarray:
         c = point_cols(i)
@@ -162,68 +242,65 @@ class EkfState:
         S[0, 0] += R_px2
         S[1, 1] += R_px2
         if self._L_cols:
-            k = self._L_cols
-            HL = H_pose @ self._L[POSE, :k] + H_point @ self._L[c, :k]
+            HL = self._HL(c, H_pose, H_point)
             S -= HL @ HL.T
         return S
 
     def sequential_update(self, i: int, innovation: np.ndarray, H_pose: np.ndarray, H_point: np.ndarray, S: np.ndarray) -> None:
         """One point's update; ``S`` from :meth:`sequential_innovation_covariance` for the same point."""
         c = point_cols(i)
-        PHt = self.P[:, POSE] @ H_pose.T + self.P[:, c] @ H_point.T  # (N,2)
+        HP = H_pose @ self.P[POSE, :] + H_point @ self.P[c, :]  # (2,N) = (P H^T)^T
         k = self._L_cols
         if k:
-            L = self._L[:, :k]
-            PHt -= L @ (H_pose @ L[POSE] + H_point @ L[c]).T
+            HP -= self._HL(c, H_pose, H_point) @ self._L[:k]
         S_inv = _inv2(S)
-        self._dx += PHt @ (S_inv @ innovation)
-        if k + 2 > self._L.shape[1]:
-            self._L = np.concatenate([self._L, np.zeros_like(self._L)], axis=1)
-        self._L[:, k : k + 2] = PHt @ _chol2(S_inv)
+        self._dx += (S_inv @ innovation) @ HP
+        if k + 2 > self._L.shape[0]:
+            self._L = np.concatenate([self._L, np.zeros_like(self._L)], axis=0)
+        self._L[k : k + 2] = _chol2(S_inv).T @ HP
         self._L_cols = k + 2
 
     def end_sequential(self) -> None:
         if self._L is not None and self._L_cols:
-            L = self._L[:, : self._L_cols]
-            self.P -= L @ L.T
+            Lt = self._L[: self._L_cols]
+            self.P -= Lt.T @ Lt
             self._symmetrize()
-            self._apply_correction(self._dx)
+            self.apply_correction(self._dx)
         self._L = None
         self._L_cols = 0
 
     # --- state changes -----------------------------------------------------------------------
-    def _apply_correction(self, dx: np.ndarray) -> None:
-        self.T_world_body = retract(self.T_world_body, dx[POSE])
+    def apply_correction(self, dx: np.ndarray) -> None:
+        """Move the estimate by the error-state vector ``dx`` (the group action of the module docstring)."""
+        E = so3_exp(dx[ROT])
+        T = self.T_world_body
+        T[:3, :3] = E @ T[:3, :3]
+        o = self.origin
+        T[:3, 3] = E @ (T[:3, 3] - o) + o + dx[POS]
         self.v_body = self.v_body + dx[VEL]
         if self.n_points:
-            self.points_xyz = self.points_xyz + dx[N_BASE:].reshape(-1, 3)
+            self.points_xyz = (self.points_xyz - o) @ E.T + o + dx[N_BASE:].reshape(-1, 3)
 
     def add_points(self, point_ids: np.ndarray, p_body: np.ndarray, Sigma_body: np.ndarray) -> None:
         """Append points measured in the current body frame (``p_body`` (k,3)) with covariance
-        ``Sigma_body`` (k,3,3); their world covariance and correlation follow from the pose's."""
+        ``Sigma_body`` (k,3,3); their correlation with the state follows from the pose's.
+        With ``X = R p + t``, the new point's error is ``xi = nu + R dp``."""
         self._require_batch_mode()
         k = len(point_ids)
         if k == 0:
             return
         R, t = self.T_world_body[:3, :3], self.T_world_body[:3, 3]
         X = p_body @ R.T + t
-        # d X / d pose (right perturbation) = R [-skew(p_body), I]
-        J = np.einsum("ij,kjl->kil", R, np.concatenate([-skew(p_body), np.broadcast_to(np.eye(3), (k, 3, 3))], axis=2))
         N = self.dim
         P_new = np.zeros((N + 3 * k, N + 3 * k))
         P_new[:N, :N] = self.P
-        P_pose_all = self.P[POSE, :]  # (6, N)
-        cross = np.einsum("kij,jn->kin", J, P_pose_all).reshape(3 * k, N)
+        cross = np.tile(self.P[POS, :], (k, 1))  # (3k, N)
         P_new[N:, :N] = cross
         P_new[:N, N:] = cross.T
-        P_pp = self.P[POSE, POSE]
-        JPJ = np.einsum("kij,jl,kml->kim", J, P_pp, J)
-        # correlations between the new points through the shared pose
-        Jflat = J.reshape(3 * k, 6)
-        P_new[N:, N:] = Jflat @ P_pp @ Jflat.T
+        P_new[N:, N:] = np.tile(self.P[POS, POS], (k, k))
         for j in range(k):
             s = slice(N + 3 * j, N + 3 * j + 3)
-            P_new[s, s] = JPJ[j] + R @ Sigma_body[j] @ R.T
+            P_new[s, s] += R @ Sigma_body[j] @ R.T
         self.P = P_new
         self.points_xyz = np.concatenate([self.points_xyz, X])
         self.point_ids = np.concatenate([self.point_ids, np.asarray(point_ids, dtype=np.int64)])

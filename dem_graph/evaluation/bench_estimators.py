@@ -69,7 +69,7 @@ def _config_for(estimator: str, max_points: int, rig) -> RunConfig:
     return config
 
 
-def bench_estimators(estimators=("gm", "ptpm"), point_counts=(50, 100, 150, 200, 300), scenario_name: str = "demo", frames: int = 150, seed: int = 0) -> EstimatorBenchResult:
+def bench_estimators(estimators=("gm", "ptpm"), point_counts=(50, 100, 130, 150, 200, 300), scenario_name: str = "demo", frames: int = 150, seed: int = 0) -> EstimatorBenchResult:
     sim = SimulatedSequence.from_config(scenario(scenario_name, seed=seed))
     events = []
     for e in sim.events():

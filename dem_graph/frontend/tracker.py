@@ -222,17 +222,16 @@ class PatchTracker:
         if H_src_to_cur is None:
             return region[margin : margin + side, margin : margin + side].astype(np.float32)
         H = np.asarray(H_src_to_cur, dtype=float)
-        if H.shape != (3, 3) or not np.all(np.isfinite(H)):
+        if H.shape != (3, 3) or not math.isfinite(float(H.sum())):
             raise ValueError(f"H_src_to_cur must be a finite 3x3 matrix, got shape {H.shape}")
         c_src = np.array([patch.center_px[0], patch.center_px[1], 1.0])
         c_h = H @ c_src
-        if not abs(c_h[2]) > 1e-12 * np.abs(H).max():
+        if not abs(c_h[2]) > 1e-12 * float(np.abs(H).max()):
             raise ValueError("H_src_to_cur maps the patch centre to infinity")
         c_cur = c_h[:2] / c_h[2]
-        try:
-            H_inv = np.linalg.inv(H)
-        except np.linalg.LinAlgError:
-            raise ValueError("H_src_to_cur is singular") from None
+        ok, H_inv = cv2.invert(H)  # ~10x cheaper than np.linalg.inv on a 3x3
+        if not ok:
+            raise ValueError("H_src_to_cur is singular")
         # template pixel (a, b) -> current image (c_cur + (a, b) - half) -> source image -> region pixel
         cur_from_tpl = np.array([[1.0, 0.0, c_cur[0] - half], [0.0, 1.0, c_cur[1] - half], [0.0, 0.0, 1.0]])
         reg_from_src = np.array([[1.0, 0.0, radius - c_src[0]], [0.0, 1.0, radius - c_src[1]], [0.0, 0.0, 1.0]])
