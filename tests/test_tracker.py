@@ -355,3 +355,32 @@ def test_exactly_one_search_region_must_be_given():
         TRACKER.track(A, tpl, (160.0, 120.0), S_px2=np.array([[1.0, 2.0], [2.0, 1.0]]))  # not positive definite
     with pytest.raises(ValueError):
         TRACKER.track(A, tpl[:, :-1], (160.0, 120.0), half_size_px=5)
+
+
+def test_batched_homographies_match_opencv():
+    """The front end's batched 4-point homographies equal OpenCV's, and degenerate sets are NaN."""
+    from dem_graph.frontend.frontend import homographies_from_4_points
+
+    rng = np.random.default_rng(11)
+    src = rng.uniform(0, 800, (20, 4, 2))
+    dst = src + rng.normal(0, 20, (20, 4, 2))
+    src[3] = src[3, :1]  # four equal points
+    H = homographies_from_4_points(src, dst)
+    for k in range(20):
+        if k == 3:
+            assert np.isnan(H[k]).all()
+            continue
+        expected = cv2.getPerspectiveTransform(src[k].astype(np.float32), dst[k].astype(np.float32))
+        np.testing.assert_allclose(H[k], expected, rtol=1e-3, atol=1e-6)
+
+
+def test_batched_template_warps_equal_one_at_a_time():
+    A = _texture()
+    patches = [TRACKER.make_patch(A, (140.0 + 5 * k, 100.0 + 3 * k), 0.0) for k in range(3)]
+    Hs = np.array([[[1.0, 0.02 * k, 3.0], [0.01, 1.0 + 0.05 * k, -2.0], [1e-4 * k, 0.0, 1.0]] for k in range(3)])
+    radius = patches[0].region.shape[0] // 2
+    M = TRACKER.template_warps(np.array([p.center_px for p in patches]), radius, Hs)
+    for k, patch in enumerate(patches):
+        np.testing.assert_array_equal(TRACKER.warp_template(patch, M[k]), TRACKER.template(patch, Hs[k], (0.0, 0.0)))
+    bad = TRACKER.template_warps(np.array([[140.0, 100.0]]), radius, np.full((1, 3, 3), np.nan))
+    assert np.isnan(bad).all()

@@ -194,12 +194,12 @@ class EkfSlam(Estimator):
         idx = np.arange(st.n_points)
         uv, Hp, Hx, in_front, _ = st.observe(idx, self.rig.camera_model, self.rig.T_body_cam)
         T_wc = self._camera_pose()  # predicted; patches refreshed in this frame are tied to it
-        homographies = fe.ground_homographies(st.point_ids, st.points_xyz, T_wc)
+        warps = fe.template_warps(st.point_ids, st.points_xyz, T_wc)
         if self.config.variant == "gm":
             half = self.config.gm_search_half_size_px
             ok_idx, innov = [], []
             for i in idx[in_front]:
-                res = fe.track(image, int(st.point_ids[i]), homographies[i], uv[i], half_size_px=half, t_s=t_s, T_world_cam=T_wc)
+                res = fe.track(image, int(st.point_ids[i]), None if warps is None else warps[i], uv[i], half_size_px=half, t_s=t_s, T_world_cam=T_wc)
                 self.last_search_sizes.append(res.search_half_size_px)
                 found, injected = self._inject(res.uv_px if res.ok else None, uv[i])
                 if found is None:
@@ -230,7 +230,7 @@ class EkfSlam(Estimator):
                 d_pose, d_point = st.correction(i)
                 uv_i = uv[i] + Hp[i] @ d_pose + Hx[i] @ d_point
                 S = st.sequential_innovation_covariance(i, Hp[i], Hx[i], self._R)
-                res = fe.track(image, int(st.point_ids[i]), homographies[i], uv_i, S_px2=S, t_s=t_s, T_world_cam=T_wc)
+                res = fe.track(image, int(st.point_ids[i]), None if warps is None else warps[i], uv_i, S_px2=S, t_s=t_s, T_world_cam=T_wc)
                 self.last_search_sizes.append(res.search_half_size_px)
                 found, injected = self._inject(res.uv_px if res.ok else None, uv_i)
                 tb = time.perf_counter()

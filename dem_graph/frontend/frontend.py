@@ -17,7 +17,6 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 from pydantic import Field
 
@@ -45,6 +44,27 @@ class FrontendConfig(StrictModel):
     warp_patches: bool = Field(True, description="warp patches by the ground-plane homography between the two views")
     refresh_patch_every: int = Field(20, ge=0, description="re-record a point's patch at its tracked position every this many successful tracks (0: never)")
     sigma_px: float = Field(1.0, gt=0, description="standard deviation of a tracked position, pixels")
+
+
+def homographies_from_4_points(uv_src: np.ndarray, uv_dst: np.ndarray) -> np.ndarray:
+    """(n,3,3) homographies mapping 4 source points (n,4,2) onto 4 destination points, with
+    ``H[2,2] = 1``; NaN where the points are degenerate."""
+    n = len(uv_src)
+    x, y = uv_src[..., 0], uv_src[..., 1]
+    u, v = uv_dst[..., 0], uv_dst[..., 1]
+    zero, one = np.zeros_like(x), np.ones_like(x)
+    rows_u = np.stack([x, y, one, zero, zero, zero, -u * x, -u * y], axis=-1)  # (n,4,8)
+    rows_v = np.stack([zero, zero, zero, x, y, one, -v * x, -v * y], axis=-1)
+    A = np.concatenate([rows_u, rows_v], axis=1)  # (n,8,8)
+    b = np.concatenate([u, v], axis=1)  # (n,8)
+    finite = np.isfinite(A).all(axis=(1, 2)) & np.isfinite(b).all(axis=1)
+    A = np.where(finite[:, None, None], A, np.eye(8))
+    ok = finite & (np.abs(np.linalg.det(A)) > 1e-12)
+    A[~ok] = np.eye(8)
+    h = np.linalg.solve(A, np.where(ok[:, None], b, 0.0)[..., None])[..., 0]
+    H = np.concatenate([h, np.ones((n, 1))], axis=1).reshape(n, 3, 3)
+    H[~ok] = np.nan
+    return H
 
 
 @dataclass
@@ -82,40 +102,41 @@ class FrontEnd:
         self.T_cam_body = invert(self.T_body_cam)
 
     # --- tracking ----------------------------------------------------------------------------
-    def ground_homographies(self, point_ids, X_world: np.ndarray, T_world_cam: np.ndarray, half_m: float = 0.15) -> list:
-        """Per point, the homography from its patch's image to the current image induced by the
-        horizontal ground plane through the point (None where it cannot be formed or warping is off)."""
+    def template_warps(self, point_ids, X_world: np.ndarray, T_world_cam: np.ndarray, half_m: float = 0.15) -> np.ndarray | None:
+        """Per point, the matrix that samples its template from its stored patch (for
+        ``track``), through the homography the horizontal ground plane through the point induces
+        between the patch's view and the current one ``T_world_cam``. (n,3,3), NaN where it
+        cannot be formed (then the patch is used unwarped); None when warping is off."""
         n = len(point_ids)
-        if not self.config.warp_patches or n == 0:
-            return [None] * n
+        if not self.config.warp_patches:
+            return None
+        if n == 0:
+            return np.zeros((0, 3, 3))
         offsets = np.array([[-half_m, -half_m, 0.0], [half_m, -half_m, 0.0], [half_m, half_m, 0.0], [-half_m, half_m, 0.0]])
         corners = X_world[:, None, :] + offsets[None]  # (n,4,3)
-        T_cam0_world = invert(np.array([self.tracks[int(p)].T_world_cam_source for p in point_ids]))  # (n,4,4)
+        tracks = [self.tracks[int(p)] for p in point_ids]
+        T_cam0_world = invert(np.array([t.T_world_cam_source for t in tracks]))  # (n,4,4)
         c0 = np.einsum("nij,nkj->nki", T_cam0_world[:, :3, :3], corners) + T_cam0_world[:, None, :3, 3]
         T_cam1_world = invert(T_world_cam)
         c1 = corners @ T_cam1_world[:3, :3].T + T_cam1_world[:3, 3]
         uv0, f0 = self.camera.project(c0.reshape(-1, 3))
         uv1, f1 = self.camera.project(c1.reshape(-1, 3))
-        ok = (f0 & f1).reshape(n, 4).all(axis=1)
-        uv0, uv1 = uv0.reshape(n, 4, 2).astype(np.float32), uv1.reshape(n, 4, 2).astype(np.float32)
-        out = []
-        for k in range(n):
-            H = None
-            if ok[k]:
-                try:
-                    H = cv2.getPerspectiveTransform(uv0[k], uv1[k]).astype(np.float64)
-                except cv2.error:
-                    H = None
-            out.append(H)
-        return out
+        H = homographies_from_4_points(uv0.reshape(n, 4, 2), uv1.reshape(n, 4, 2))
+        H[~(f0 & f1).reshape(n, 4).all(axis=1)] = np.nan
+        centers = np.array([t.patch.center_px for t in tracks])
+        radius = tracks[0].patch.region.shape[0] // 2
+        return self.tracker.template_warps(centers, radius, H)
 
-    def track(self, image, point_id: int, H_src_to_cur, uv_pred, S_px2=None, half_size_px=None, t_s: float = 0.0, T_world_cam=None) -> TrackResult:
-        """Track one point: its patch warped by ``H_src_to_cur`` (or not, if None), searched around
-        ``uv_pred`` in the chi-square region of ``S_px2`` or the square of ``half_size_px``.
-        With ``refresh_patch_every``, the patch is re-recorded at the match (taken at ``t_s`` from
-        the camera pose estimate ``T_world_cam``)."""
+    def track(self, image, point_id: int, warp, uv_pred, S_px2=None, half_size_px=None, t_s: float = 0.0, T_world_cam=None) -> TrackResult:
+        """Track one point: its patch warped by ``warp`` (a matrix of :meth:`template_warps`; None or
+        NaN: unwarped), searched around ``uv_pred`` in the chi-square region of ``S_px2`` or the
+        square of ``half_size_px``. With ``refresh_patch_every``, the patch is re-recorded at the
+        match (taken at ``t_s`` from the camera pose estimate ``T_world_cam``)."""
         track = self.tracks[point_id]
-        template = self.tracker.template(track.patch, H_src_to_cur, uv_pred)
+        if warp is None or not np.isfinite(warp[2, 2]):
+            template = self.tracker.template(track.patch)
+        else:
+            template = self.tracker.warp_template(track.patch, warp)
         result = self.tracker.track(image, template, uv_pred, S_px2=S_px2, half_size_px=half_size_px)
         self.counters[f"track_{result.status.name.lower()}"] += 1
         if result.ok:

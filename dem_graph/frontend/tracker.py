@@ -26,8 +26,7 @@ import numpy as np
 from pydantic import Field
 
 from dem_graph.config_types import StrictModel
-
-_DILATE_KERNEL = np.ones((3, 3), np.uint8)
+from dem_graph.frontend.match_kernel import AMBIGUOUS, LOW_SCORE, select_match
 
 
 class TrackerConfig(StrictModel):
@@ -122,44 +121,6 @@ def _point(uv_px, what: str) -> np.ndarray:
     return uv
 
 
-def _parabola_offset(left: float, centre: float, right: float) -> float:
-    """Vertex offset of the parabola through three equally spaced samples, clamped to +-0.5."""
-    curvature = left - 2.0 * centre + right
-    if not curvature < 0.0:  # not a maximum (or NaN): keep the integer peak
-        return 0.0
-    return min(0.5, max(-0.5, 0.5 * (left - right) / curvature))
-
-
-def _subpixel_offset(scores: np.ndarray, i: int, j: int) -> tuple[float, float]:
-    """Sub-pixel (u, v) offset of the score peak at row ``i``, column ``j``, each clamped to +-0.5.
-
-    A 2-D quadratic through the 3x3 neighbourhood (gradient and Hessian, cross term included) when
-    the peak is inside the grid and the Hessian is negative definite; otherwise a 1-D parabola
-    along each axis whose two neighbours exist. The cross term matters: the NCC peak of a small
-    window of natural texture is often a tilted ellipse, and per-axis parabolas through the
-    integer peak then miss its top (on blurred noise, 15x15 templates: worst error 0.47 px with
-    per-axis parabolas, 0.11 px with the 2-D fit).
-    """
-    n_rows, n_cols = scores.shape
-    inner_u = 0 < j < n_cols - 1
-    inner_v = 0 < i < n_rows - 1
-    if inner_u and inner_v:
-        w = scores[i - 1 : i + 2, j - 1 : j + 2].astype(float)
-        g_u = 0.5 * (w[1, 2] - w[1, 0])
-        g_v = 0.5 * (w[2, 1] - w[0, 1])
-        h_uu = w[1, 2] - 2.0 * w[1, 1] + w[1, 0]
-        h_vv = w[2, 1] - 2.0 * w[1, 1] + w[0, 1]
-        h_uv = 0.25 * (w[2, 2] - w[2, 0] - w[0, 2] + w[0, 0])
-        det = h_uu * h_vv - h_uv * h_uv
-        if h_uu < 0.0 and det > 0.0:
-            off_u = -(h_vv * g_u - h_uv * g_v) / det
-            off_v = -(h_uu * g_v - h_uv * g_u) / det
-            return min(0.5, max(-0.5, off_u)), min(0.5, max(-0.5, off_v))
-    off_u = _parabola_offset(float(scores[i, j - 1]), float(scores[i, j]), float(scores[i, j + 1])) if inner_u else 0.0
-    off_v = _parabola_offset(float(scores[i - 1, j]), float(scores[i, j]), float(scores[i + 1, j])) if inner_v else 0.0
-    return off_u, off_v
-
-
 class PatchTracker:
     """Extracts patches, predicts templates and finds them by active search (see the module doc)."""
 
@@ -222,23 +183,44 @@ class PatchTracker:
         if H_src_to_cur is None:
             return region[margin : margin + side, margin : margin + side].astype(np.float32)
         H = np.asarray(H_src_to_cur, dtype=float)
-        if H.shape != (3, 3) or not math.isfinite(float(H.sum())):
-            raise ValueError(f"H_src_to_cur must be a finite 3x3 matrix, got shape {H.shape}")
-        c_src = np.array([patch.center_px[0], patch.center_px[1], 1.0])
-        c_h = H @ c_src
-        if not abs(c_h[2]) > 1e-12 * float(np.abs(H).max()):
-            raise ValueError("H_src_to_cur maps the patch centre to infinity")
-        c_cur = c_h[:2] / c_h[2]
-        ok, H_inv = cv2.invert(H)  # ~10x cheaper than np.linalg.inv on a 3x3
-        if not ok:
-            raise ValueError("H_src_to_cur is singular")
-        # template pixel (a, b) -> current image (c_cur + (a, b) - half) -> source image -> region pixel
-        cur_from_tpl = np.array([[1.0, 0.0, c_cur[0] - half], [0.0, 1.0, c_cur[1] - half], [0.0, 0.0, 1.0]])
-        reg_from_src = np.array([[1.0, 0.0, radius - c_src[0]], [0.0, 1.0, radius - c_src[1]], [0.0, 0.0, 1.0]])
-        reg_from_tpl = reg_from_src @ H_inv @ cur_from_tpl
+        if H.shape != (3, 3):
+            raise ValueError(f"H_src_to_cur must be a 3x3 matrix, got shape {H.shape}")
+        M = self.template_warps(np.asarray(patch.center_px, dtype=float)[None], radius, H[None])[0]
+        if not np.all(np.isfinite(M)):
+            raise ValueError("H_src_to_cur is not finite, singular, or maps the patch centre to infinity")
+        return self.warp_template(patch, M)
+
+    def template_warps(self, centers_src_px: np.ndarray, region_radius_px: int, H_src_to_cur: np.ndarray) -> np.ndarray:
+        """(n,3,3) maps from template pixels to stored-region pixels, for :meth:`warp_template`,
+        computed for ``n`` patches at once (patch centres (n,2) in their source images, homographies
+        (n,3,3) from source to current image); NaN where a homography is not finite, is singular,
+        or maps the centre to infinity. See :meth:`template` for the geometry."""
+        H = np.asarray(H_src_to_cur, dtype=float)
+        n = len(H)
+        half = self.config.patch_half_size_px
+        c_src = np.concatenate([np.asarray(centers_src_px, dtype=float).reshape(n, 2), np.ones((n, 1))], axis=1)
+        finite = np.isfinite(H).all(axis=(1, 2))
+        H = np.where(finite[:, None, None], H, np.eye(3))
+        scale = np.abs(H).max(axis=(1, 2))
+        c_h = np.einsum("nij,nj->ni", H, c_src)
+        ok = finite & (np.abs(c_h[:, 2]) > 1e-12 * scale) & (np.abs(np.linalg.det(H)) > 1e-12 * scale**3)
+        H = np.where(ok[:, None, None], H, np.eye(3))
+        c_cur = c_h[:, :2] / np.where(ok, c_h[:, 2], 1.0)[:, None]
+        M = np.linalg.inv(H)  # current image -> source image
+        # template pixel (a, b) -> current image (c_cur + (a, b) - half) -> source -> region pixel
+        offset_cur = c_cur - half
+        M[:, :, 2] += np.einsum("nij,nj->ni", M[:, :, :2], offset_cur)  # M @ translation(offset_cur)
+        M[:, :2, :] += (region_radius_px - c_src[:, :2])[:, :, None] * M[:, 2:3, :]  # translation(r) @ M
+        M[~ok] = np.nan
+        return M
+
+    def warp_template(self, patch: Patch, M_region_from_template: np.ndarray) -> np.ndarray:
+        """The template sampled (bilinear, border repeated) from the patch's stored region through one
+        matrix of :meth:`template_warps`."""
+        side = 2 * self.config.patch_half_size_px + 1
         return cv2.warpPerspective(
-            region.astype(np.float32),
-            reg_from_tpl,
+            patch.region.astype(np.float32),
+            M_region_from_template,
             (side, side),
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
             borderMode=cv2.BORDER_REPLICATE,
@@ -314,41 +296,34 @@ class PatchTracker:
         scores = cv2.matchTemplate(roi, tpl, cv2.TM_CCOEFF_NORMED)  # scores[i, j]: centre (u_lo + j, v_lo + i)
         n_rows, n_cols = scores.shape
 
-        # the region inside the computed grid: rows i0:i1, columns j0:j1; scores outside it (and
-        # outside the ellipse) are -inf in `gated`
+        # the region inside the computed grid: rows i0:i1, columns j0:j1
         i0, i1 = max(cv - half_v, v_lo) - v_lo, min(cv + half_v, v_hi) - v_lo + 1
         j0, j1 = max(cu - half_u, u_lo) - u_lo, min(cu + half_u, u_hi) - u_lo + 1
-        gated = np.full_like(scores, -np.inf)
-        if S_inv is not None:
-            # per row dv, the ellipse a du^2 + 2 b du dv + c dv^2 <= gamma is an interval of du
-            a, b, c = S_inv
-            dv = np.arange(i1 - i0) + (v_lo + i0 - v_pred)
-            quarter_disc = b * b * dv * dv - a * (c * dv * dv - gamma)
-            du_half = np.sqrt(np.maximum(quarter_disc, 0.0)) / a
-            du_half[quarter_disc < 0.0] = -1.0  # the row misses the ellipse
-            du_mid = (-b / a) * dv
-            du = np.arange(j1 - j0) + (u_lo + j0 - u_pred)
-            inside = np.abs(du[None, :] - du_mid[:, None]) <= du_half[:, None]
-            inside[cv - v_lo - i0, cu - u_lo - j0] = True  # the nearest candidate, even for a tiny ellipse
-            gated[i0:i1, j0:j1] = np.where(inside, scores[i0:i1, j0:j1], -np.inf)
-        else:
-            gated[i0:i1, j0:j1] = scores[i0:i1, j0:j1]
+        a, b, c = S_inv if S_inv is not None else (1.0, 0.0, 1.0)
+        status, i_best, j_best, best, second, off_u, off_v = select_match(
+            scores,
+            i0,
+            i1,
+            j0,
+            j1,
+            S_inv is not None,
+            a,
+            b,
+            c,
+            gamma,
+            v_lo + i0 - v_pred,
+            u_lo + j0 - u_pred,
+            cv - v_lo,
+            cu - u_lo,
+            cfg.min_score,
+            cfg.exclusion_radius_px,
+            cfg.ambiguity_margin,
+            cfg.subpixel,
+        )
         searched = (half_u, half_v)
-
-        i_best, j_best = divmod(int(gated.argmax()), n_cols)
-        best = float(gated[i_best, j_best])
-        if not best >= cfg.min_score:
+        if status == LOW_SCORE:
             return TrackResult(TrackStatus.LOW_SCORE, None, best, math.nan, searched)
-
-        # the second peak: a local maximum of the scores (3x3, over every computed candidate, so a
-        # flank cut by the gate is not a peak), inside the region, outside the exclusion disk
-        peaks = np.flatnonzero(gated >= cv2.dilate(scores, _DILATE_KERNEL))
-        peak_i, peak_j = np.divmod(peaks, n_cols)
-        far = (peak_i - i_best) ** 2 + (peak_j - j_best) ** 2 > cfg.exclusion_radius_px**2
-        second = float(gated.flat[peaks[far]].max()) if far.any() else math.nan
-        if second == second and best - second < cfg.ambiguity_margin:
+        if status == AMBIGUOUS:
             return TrackResult(TrackStatus.AMBIGUOUS, None, best, second, searched)
-
-        off_u, off_v = _subpixel_offset(scores, i_best, j_best) if cfg.subpixel else (0.0, 0.0)
         uv_match = np.array([u_lo + j_best + off_u, v_lo + i_best + off_v])
         return TrackResult(TrackStatus.OK, uv_match, best, second, searched)
