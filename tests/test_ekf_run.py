@@ -35,10 +35,13 @@ def test_accuracy_with_odometry(runs, name):
 
 @pytest.mark.parametrize("name", ["gm", "ptpm"])
 def test_pose_uncertainty_is_consistent(runs, name):
-    """NEES of the pose against the truth: mostly inside the chi-square(6) 95 % bound, not orders off."""
+    """NEES of the pose against the truth: inside the two-sided chi-square(6) 95 % interval for most
+    frames and (nearly) never above it; its median near chi-square(6)'s (5.3). Measured on this
+    log: GM 83 % inside, median 2.3; PTPM 89 %, 3.0; both 100 % below the upper bound."""
     nees = runs[name].metrics["pose_nees"]
-    assert nees["fraction_below_upper_95"] > 0.8
-    assert 0.3 < nees["median"] < 30.0
+    assert nees["fraction_within_95"] > 0.75
+    assert nees["fraction_below_upper_95"] > 0.95
+    assert 1.0 < nees["median"] < 12.0
 
 
 def test_without_odometry_constant_velocity(smoke_log):
