@@ -1,0 +1,87 @@
+"""Factor builders for the iSAM2 estimator, all of them gtsam's own (C++) factors.
+
+- :func:`point_in_frame_factor` ties a point to a pose by a measurement of the point in that pose's
+  frame with a full 3x3 covariance. It is a ``BearingRangeFactor3D`` whose Gaussian noise is the
+  covariance carried into (bearing, range) coordinates, so no Python factor runs in the solver.
+  It serves both as the laser factor (the point in the laser frame at the scan's time: the beam
+  direction and the range with the range noise) and as the flat-ground prior of a new camera
+  point (the point in the body frame, 0.5 m along the viewing ray), as the EKF initialises it.
+- :func:`odometry_factor`: a ``BetweenFactorPose3`` with the increment's 6x6 covariance.
+- :func:`projection_factor`: a ``GenericProjectionFactorCal3DS2`` with ``T_body_cam`` as the
+  sensor offset and a robust (Huber) kernel.
+
+Covariances are in gtsam's tangent order [rotation, translation] (the package convention).
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from dem_graph.geometry.camera import PinholeCamera
+
+HUBER_K = 1.345  # 95 % efficiency on Gaussian residuals
+
+
+def _bearing_range_jacobian(p: np.ndarray) -> np.ndarray:
+    """d(bearing error, range error)/d(point) at point ``p`` seen from the identity pose (3x3),
+    by central differences of the factor's own error: gtsam's analytic bearing Jacobian is an
+    approximation, and a covariance elongated along the ray (a camera point's depth) would leak
+    through its small errors."""
+    r = float(np.linalg.norm(p))
+    probe = gtsam.BearingRangeFactor3D(0, 1, gtsam.Unit3(p), r, gtsam.noiseModel.Unit.Create(3))
+    values = gtsam.Values()
+    values.insert(0, gtsam.Pose3())
+    values.insert(1, gtsam.Point3(*p))
+    eps = 1e-5 * r
+    J = np.empty((3, 3))
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = eps
+        values.update(1, gtsam.Point3(*(p + d)))
+        plus = probe.unwhitenedError(values)
+        values.update(1, gtsam.Point3(*(p - d)))
+        minus = probe.unwhitenedError(values)
+        J[:, k] = (plus - minus) / (2 * eps)
+    return J
+
+
+def point_in_frame_factor(pose_key: int, point_key: int, p_frame: np.ndarray, Sigma_frame: np.ndarray) -> gtsam.NonlinearFactor:
+    """The point ``point_key`` measured at ``p_frame`` (metres) in the frame of pose ``pose_key``,
+    with covariance ``Sigma_frame`` (3x3, m^2)."""
+    p = np.asarray(p_frame, dtype=float).reshape(3)
+    Sigma = np.asarray(Sigma_frame, dtype=float)
+    r = float(np.linalg.norm(p))
+    if not np.all(np.isfinite(p)) or r < 1e-6:
+        raise ValueError(f"a point-in-frame measurement needs a finite point away from the origin, got {p}")
+    if Sigma.shape != (3, 3) or not np.all(np.isfinite(Sigma)):
+        raise ValueError(f"Sigma_frame must be a finite 3x3 matrix, got shape {Sigma.shape}")
+    J = _bearing_range_jacobian(p)
+    cov = J @ Sigma @ J.T
+    noise = gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
+    return gtsam.BearingRangeFactor3D(pose_key, point_key, gtsam.Unit3(p), r, noise)
+
+
+def odometry_factor(key_a: int, key_b: int, T_a_b: np.ndarray, covariance: np.ndarray) -> gtsam.BetweenFactorPose3:
+    """Relative motion ``T_a_b`` between two poses with its 6x6 covariance ([rot, trans], right perturbation)."""
+    cov = np.asarray(covariance, dtype=float)
+    return gtsam.BetweenFactorPose3(key_a, key_b, gtsam.Pose3(np.asarray(T_a_b, dtype=float)), gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T)))
+
+
+def calibration(camera: PinholeCamera) -> gtsam.Cal3DS2:
+    """gtsam's calibration of the camera (k3 is not representable: it must be 0)."""
+    k1, k2, p1, p2, k3 = camera.distortion
+    if k3 != 0.0:
+        raise ValueError("gtsam's Cal3DS2 has no k3: undistort the measurements or recalibrate without k3")
+    return gtsam.Cal3DS2(camera.fx_px, camera.fy_px, 0.0, camera.cx_px, camera.cy_px, k1, k2, p1, p2)
+
+
+def projection_factor(
+    pose_key: int, point_key: int, uv_px: np.ndarray, sigma_px: float, K: gtsam.Cal3DS2, T_body_cam: np.ndarray, robust: bool = True
+) -> gtsam.GenericProjectionFactorCal3DS2:
+    """The pixel ``uv_px`` of point ``point_key`` seen from body pose ``pose_key`` through ``T_body_cam``."""
+    noise = gtsam.noiseModel.Isotropic.Sigma(2, float(sigma_px))
+    if robust:
+        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K), noise)
+    uv = np.asarray(uv_px, dtype=float)
+    return gtsam.GenericProjectionFactorCal3DS2(gtsam.Point2(uv[0], uv[1]), noise, pose_key, point_key, K, gtsam.Pose3(np.asarray(T_body_cam, dtype=float)))

@@ -1,0 +1,88 @@
+"""The iSAM2 estimator's factors: their errors and noise against known geometry."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from dem_graph.estimators.graph_factors import calibration, odometry_factor, point_in_frame_factor, projection_factor
+from dem_graph.geometry.camera import PinholeCamera
+from dem_graph.geometry.lie import retract
+from dem_graph.geometry.rig import default_rig
+from dem_graph.geometry.se3 import invert, make_pose, rotation_from_rpy, transform_points
+
+
+def _values(pose_key, T, point_key=None, X=None):
+    v = gtsam.Values()
+    v.insert(pose_key, gtsam.Pose3(T))
+    if point_key is not None:
+        v.insert(point_key, gtsam.Point3(*X))
+    return v
+
+
+@pytest.mark.parametrize("p_frame", [[3.0, 0.4, -1.2], [0.5, -2.0, 0.3], [-4.0, 1.0, 2.0]])
+def test_point_in_frame_factor_is_the_mahalanobis_distance_of_the_point(p_frame):
+    """For a small displacement d of the point in the pose's frame, the factor's cost is
+    d^T Sigma^-1 d / 2: the bearing-range factor carries exactly the given 3x3 covariance."""
+    rng = np.random.default_rng(0)
+    T = make_pose(rotation_from_rpy(0.1, -0.2, 0.7), [10.0, -3.0, 1.0])
+    p = np.array(p_frame)
+    A = rng.normal(size=(3, 3))
+    Sigma = A @ A.T * 1e-4 + np.diag([1e-4, 4e-4, 0.25])  # elongated, like a ray's depth
+    f = point_in_frame_factor(0, 1, p, Sigma)
+    Sigma_inv = np.linalg.inv(Sigma)
+    for _ in range(5):
+        d = rng.multivariate_normal(np.zeros(3), Sigma) * 1e-5  # the linear range: the claim is first order
+        X = transform_points(T, (p + d)[None])[0]
+        cost = f.error(_values(0, T, 1, X))
+        expected = 0.5 * d @ Sigma_inv @ d
+        assert cost == pytest.approx(expected, rel=1e-3, abs=1e-16)
+    # and zero at the measurement
+    assert f.error(_values(0, T, 1, transform_points(T, p[None])[0])) == pytest.approx(0.0, abs=1e-18)
+
+
+def test_point_in_frame_factor_rejects_bad_input():
+    with pytest.raises(ValueError):
+        point_in_frame_factor(0, 1, np.zeros(3), np.eye(3))
+    with pytest.raises(ValueError):
+        point_in_frame_factor(0, 1, [1.0, np.nan, 0.0], np.eye(3))
+    with pytest.raises(ValueError):
+        point_in_frame_factor(0, 1, [1.0, 0.0, 0.0], np.eye(2))
+
+
+def test_odometry_factor_uses_the_right_perturbation_covariance():
+    """Cost of a relative pose off by a right perturbation xi is xi^T Q^-1 xi / 2 (small xi)."""
+    rng = np.random.default_rng(1)
+    Ta = make_pose(rotation_from_rpy(0.05, 0.1, -0.4), [2.0, 1.0, 0.3])
+    U = make_pose(rotation_from_rpy(0.01, -0.02, 0.05), [0.06, 0.001, -0.002])
+    Q = np.diag([1e-5, 2e-5, 5e-6, 4e-6, 1e-6, 9e-6])
+    f = odometry_factor(0, 1, U, Q)
+    for _ in range(5):
+        xi = rng.multivariate_normal(np.zeros(6), Q) * 1e-3
+        v = gtsam.Values()
+        v.insert(0, gtsam.Pose3(Ta))
+        v.insert(1, gtsam.Pose3(retract(Ta @ U, xi)))
+        assert f.error(v) == pytest.approx(0.5 * xi @ np.linalg.solve(Q, xi), rel=1e-3, abs=1e-14)
+
+
+def test_projection_factor_matches_the_camera_model():
+    """gtsam's Cal3DS2 projection through T_body_cam gives the pixels of our PinholeCamera
+    (OpenCV distortion): zero error at our projection, sigma_px-scaled error 1 px away."""
+    rig = default_rig()
+    cam = PinholeCamera(width_px=800, height_px=600, fx_px=560.0, fy_px=555.0, cx_px=399.5, cy_px=301.0, distortion=(-0.05, 0.01, 0.001, -0.0005, 0.0))
+    K = calibration(cam)
+    T = make_pose(rotation_from_rpy(0.02, 0.03, 0.5), [5.0, 2.0, 0.1])
+    rng = np.random.default_rng(2)
+    p_body = np.column_stack([rng.uniform(3, 8, 10), rng.uniform(-2, 2, 10), rng.uniform(-0.3, 0.3, 10)])
+    X = transform_points(T, p_body)
+    uv, in_front = cam.project(transform_points(invert(T @ rig.T_body_cam), X))
+    assert in_front.all()
+    for k in range(10):
+        f = projection_factor(0, 1, uv[k], 2.0, K, rig.T_body_cam, robust=False)
+        v = _values(0, T, 1, X[k])
+        np.testing.assert_allclose(f.unwhitenedError(v), 0.0, atol=1e-6)
+        g = projection_factor(0, 1, uv[k] + [1.0, 0.0], 2.0, K, rig.T_body_cam, robust=False)
+        assert g.error(v) == pytest.approx(0.5 * (1.0 / 2.0) ** 2, rel=1e-6)
+    with pytest.raises(ValueError):
+        calibration(PinholeCamera(width_px=10, height_px=10, fx_px=1.0, fy_px=1.0, cx_px=5.0, cy_px=5.0, distortion=(0, 0, 0, 0, 0.1)))
