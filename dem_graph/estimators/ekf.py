@@ -22,9 +22,9 @@ from dem_graph.config_types import StrictModel
 from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
 from dem_graph.estimators.base import Estimator, EstimatorResult, FrameRecord
 from dem_graph.estimators.ekf_filter import EkfState
+from dem_graph.estimators.odometry import OdometryIntegrator
 from dem_graph.frontend.frontend import FrontEnd, FrontendConfig
 from dem_graph.frontend.pose_history import PoseHistory
-from dem_graph.geometry.lie import adjoint, scale_increment
 from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.se3 import invert, transform_points
 
@@ -68,9 +68,7 @@ class EkfSlam(Estimator):
         self.t_s = float(t_start_s)
         self.history = PoseHistory()
         self.history.append(self.t_s, self.state.T_world_body)
-        self._odometry: list[Odometry] = []
-        self._odometry_cursor_s = self.t_s
-        self._last_twist_rate: np.ndarray | None = None
+        self._odometry = OdometryIntegrator(self.t_s)
         self._scans: list[LaserScan] = []
         self._pending_frame: CameraFrame | None = None
         self._result = EstimatorResult(self.name)
@@ -84,7 +82,7 @@ class EkfSlam(Estimator):
 
     # --- events ------------------------------------------------------------------------------
     def on_odometry(self, event: Odometry) -> None:
-        self._odometry.append(event)
+        self._odometry.add(event)
         if self._pending_frame is not None and event.t_s >= self._pending_frame.t_s:
             self._process(self._pending_frame)
 
@@ -96,7 +94,7 @@ class EkfSlam(Estimator):
         arrived, at most one odometry period later: the motion is then measured, not extrapolated."""
         if self._pending_frame is not None:
             self._process(self._pending_frame)
-        if self.use_odometry and self.config.motion.wait_for_odometry and not any(e.t_s >= event.t_s for e in self._odometry):
+        if self.use_odometry and self.config.motion.wait_for_odometry and not self._odometry.covers(event.t_s):
             self._pending_frame = event
             return None
         return self._process(event)
@@ -131,45 +129,13 @@ class EkfSlam(Estimator):
         if dt < 0:
             raise ValueError("frames must come in time order")
         if self.use_odometry:
-            U, Q = self._odometry_increment(self.t_s, t_s)
+            U, Q = self._odometry.increment(t_s)
             self.state.predict_increment(U, Q, dt)
         elif dt > 0:
             m = self.config.motion
             sigma = np.array([m.sigma_angular_acc_radps2] * 3 + [m.sigma_linear_acc_mps2] * 3)
             self.state.predict_constant_velocity(dt, sigma)
         self.t_s = t_s
-
-    def _odometry_increment(self, a: float, b: float) -> tuple[np.ndarray, np.ndarray]:
-        """Compose the odometry between ``a`` and ``b``; the part after the last increment is
-        extrapolated at the last increment's rate (it is measured later, within a few ms)."""
-        U, Q = np.eye(4), np.zeros((6, 6))
-        covered = self._odometry_cursor_s
-        keep = []
-        for e in self._odometry:
-            lo, hi = max(e.t_prev_s, covered), min(e.t_s, b)
-            span = e.t_s - e.t_prev_s
-            if hi > lo and span > 0:
-                f = (hi - lo) / span
-                part = scale_increment(e.T_prev_curr, f) if f < 1.0 - 1e-9 else e.T_prev_curr
-                A = adjoint(invert(part))
-                Q = A @ Q @ A.T + e.covariance * f
-                U = U @ part
-                covered = hi
-                self._last_twist_rate = (e.T_prev_curr, e.covariance, span)
-            if e.t_s > b:
-                keep.append(e)
-        if covered < b and self._last_twist_rate is not None:
-            T_rate, cov_rate, span = self._last_twist_rate
-            f = (b - covered) / span
-            part = scale_increment(T_rate, f)
-            A = adjoint(invert(part))
-            Q = A @ Q @ A.T + cov_rate * max(f, 1.0)
-            U = U @ part
-        self._odometry = keep
-        self._odometry_cursor_s = b
-        if not np.any(Q):
-            Q = np.eye(6) * 1e-6
-        return U, Q
 
     # --- tracking and update -----------------------------------------------------------------
     def _camera_pose(self) -> np.ndarray:
