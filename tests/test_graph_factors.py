@@ -86,3 +86,23 @@ def test_projection_factor_matches_the_camera_model():
         assert g.error(v) == pytest.approx(0.5 * (1.0 / 2.0) ** 2, rel=1e-6)
     with pytest.raises(ValueError):
         calibration(PinholeCamera(width_px=10, height_px=10, fx_px=1.0, fy_px=1.0, cx_px=5.0, cy_px=5.0, distortion=(0, 0, 0, 0, 0.1)))
+
+
+def test_range_factor_measures_from_the_sensor():
+    """Along the sensor's ray the cost is d^2 / (2 sigma^2); across it, zero to first order."""
+    from dem_graph.estimators.graph_factors import range_factor
+
+    rig = default_rig()
+    T = make_pose(rotation_from_rpy(0.0, 0.05, 1.0), [4.0, 1.0, 0.3])
+    T_world_cam = T @ rig.T_body_cam
+    ray = T_world_cam[:3, :3] @ np.array([0.1, 0.2, 1.0])
+    ray /= np.linalg.norm(ray)
+    X = T_world_cam[:3, 3] + 6.0 * ray
+    f = range_factor(0, 1, 6.0, 0.5, rig.T_body_cam)
+    assert f.error(_values(0, T, 1, X)) == pytest.approx(0.0, abs=1e-20)
+    assert f.error(_values(0, T, 1, X + 0.3 * ray)) == pytest.approx(0.5 * (0.3 / 0.5) ** 2, rel=1e-9)
+    across = np.cross(ray, [0.0, 0.0, 1.0])
+    across /= np.linalg.norm(across)
+    assert f.error(_values(0, T, 1, X + 1e-4 * across)) < 1e-15
+    with pytest.raises(ValueError):
+        range_factor(0, 1, -1.0, 0.5, rig.T_body_cam)

@@ -3,9 +3,15 @@
 - :func:`point_in_frame_factor` ties a point to a pose by a measurement of the point in that pose's
   frame with a full 3x3 covariance. It is a ``BearingRangeFactor3D`` whose Gaussian noise is the
   covariance carried into (bearing, range) coordinates, so no Python factor runs in the solver.
-  It serves both as the laser factor (the point in the laser frame at the scan's time: the beam
-  direction and the range with the range noise) and as the flat-ground prior of a new camera
-  point (the point in the body frame, 0.5 m along the viewing ray), as the EKF initialises it.
+  It is the laser factor: the point in the laser frame at the scan's time (the beam direction, and
+  the range with the range noise), or in the body frame through Eq. 2. Its covariance must be small
+  enough for the factor to be linear over it; a laser return's is.
+- :func:`range_factor` measures a point's distance from a sensor on the body. A new camera point
+  gets it with the flat-ground depth uncertainty, plus the projection factor of the pixel it was
+  seeded at: together they are the EKF's seed covariance (about 0.5 m of height along the ray,
+  one pixel across it). A point-in-frame factor from the body origin cannot carry that covariance:
+  seen from the body origin, a few decimetres along the camera's ray bend the bearing by more than
+  the millimetres the covariance allows across the ray.
 - :func:`odometry_factor`: a ``BetweenFactorPose3`` with the increment's 6x6 covariance.
 - :func:`projection_factor`: a ``GenericProjectionFactorCal3DS2`` with ``T_body_cam`` as the
   sensor offset and a robust (Huber) kernel.
@@ -60,6 +66,15 @@ def point_in_frame_factor(pose_key: int, point_key: int, p_frame: np.ndarray, Si
     cov = J @ Sigma @ J.T
     noise = gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
     return gtsam.BearingRangeFactor3D(pose_key, point_key, gtsam.Unit3(p), r, noise)
+
+
+def range_factor(pose_key: int, point_key: int, range_m: float, sigma_m: float, T_body_sensor: np.ndarray) -> gtsam.NonlinearFactor:
+    """Distance ``range_m`` (sigma ``sigma_m``) from the sensor at ``T_body_sensor`` on body pose
+    ``pose_key`` to point ``point_key``."""
+    if not (np.isfinite(range_m) and range_m > 0 and np.isfinite(sigma_m) and sigma_m > 0):
+        raise ValueError(f"a range factor needs a positive range and sigma, got {range_m}, {sigma_m}")
+    noise = gtsam.noiseModel.Isotropic.Sigma(1, float(sigma_m))
+    return gtsam.RangeFactorWithTransform3D(pose_key, point_key, float(range_m), noise, gtsam.Pose3(np.asarray(T_body_sensor, dtype=float)))
 
 
 def odometry_factor(key_a: int, key_b: int, T_a_b: np.ndarray, covariance: np.ndarray) -> gtsam.BetweenFactorPose3:
