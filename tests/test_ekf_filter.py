@@ -88,6 +88,13 @@ def test_world_change_is_unobservable_whatever_the_estimate():
     w, u = rng.normal(size=3), rng.normal(size=3)
     for i in range(st.n_points):
         np.testing.assert_allclose(Hp[i] @ np.r_[w, u] + Hx[i] @ u, 0.0, atol=1e-9)
+    # the same direction, applied as a finite correction, moves the whole world rigidly: the
+    # predicted pixels do not change at all (this checks apply_correction, not only the Jacobians)
+    uv, *_ = st.observe(np.arange(st.n_points), rig.camera_model, rig.T_body_cam)
+    moved = copy.deepcopy(st)
+    moved.apply_correction(np.concatenate([0.3 * w, u, np.zeros(6), np.tile(u, st.n_points)]))
+    assert not np.allclose(moved.points_xyz, st.points_xyz)
+    np.testing.assert_allclose(moved.observe(np.arange(st.n_points), rig.camera_model, rig.T_body_cam)[0], uv, atol=1e-9)
 
 
 def test_filter_is_consistent_over_a_long_run():

@@ -115,8 +115,8 @@ class EkfSlam(Estimator):
         timing["tracking"], timing["update"] = t_track, t_update
         t2 = time.perf_counter()
         self.history.append(event.t_s, self.state.T_world_body)
-        self._drop_points()
-        self._add_points(image, event.t_s)
+        live_uv = self._drop_points()
+        self._add_points(image, event.t_s, live_uv)
         timing["map"] = time.perf_counter() - t2
         timing["total"] = time.perf_counter() - t0
         record = FrameRecord(event.t_s, self.state.T_world_body.copy(), self.state.pose_covariance(), self.state.n_points, n_tracked, timing)
@@ -184,8 +184,8 @@ class EkfSlam(Estimator):
         S_all = st.innovation_covariances(Hp, Hx, self._R)
         gains = np.where(in_front, np.linalg.slogdet(S_all / self._R)[1], -np.inf)
         order = [int(i) for i in np.argsort(-gains) if np.isfinite(gains[i])]
-        gamma = fe.tracker.gate_chi2
-        self.last_prior_search_sizes = [(int(np.ceil(np.sqrt(gamma * S_all[i][0, 0]))), int(np.ceil(np.sqrt(gamma * S_all[i][1, 1])))) for i in order]
+        half_prior = np.ceil(np.sqrt(self._gate * S_all[order][:, [0, 1], [0, 1]])).astype(int)
+        self.last_prior_search_sizes = [(int(u), int(v)) for u, v in half_prior]
         t_track = time.perf_counter() - t0
         t_update = 0.0
         st.begin_sequential(len(order))
@@ -227,10 +227,11 @@ class EkfSlam(Estimator):
         track = self.frontend.drop(int(st.point_ids[i]), reason)
         self._result.points.add(track.point_id, track.kind, st.points_xyz[i], st.point_covariance(i), track.n_tracked, track.created_t_s)
 
-    def _drop_points(self) -> None:
+    def _drop_points(self) -> np.ndarray:
+        """Archive the points that left the view or were lost; returns the pixels of those kept (n,2)."""
         st = self.state
         if st.n_points == 0:
-            return
+            return np.zeros((0, 2))
         cam = self.rig.camera_model
         T_cam_world = invert(self._camera_pose())
         uv, in_front = cam.project(transform_points(T_cam_world, st.points_xyz))
@@ -251,17 +252,18 @@ class EkfSlam(Estimator):
                 self._archive(i, reason)
                 remove[i] = True
         st.remove_points(remove)
+        return uv[~remove]
 
     def _speed_mps(self) -> float:
         return float(np.linalg.norm(self.state.v_body[3:]))
 
-    def _add_points(self, image, t_s: float) -> None:
+    def _add_points(self, image, t_s: float, occupied_uv: np.ndarray) -> None:
+        """New laser and camera points, away from the live points' pixels ``occupied_uv``."""
         st = self.state
         fe = self.frontend
         focus = fe.focus_area(self._speed_mps() if len(self.history) > 2 else None)
         T_body_world = invert(st.T_world_body)
         cam = self.rig.camera_model
-        occupied_uv = cam.project(transform_points(invert(self._camera_pose()), st.points_xyz))[0] if st.n_points else np.zeros((0, 2))
         new = []
         scans, self._scans = [s for s in self._scans if s.t_s <= t_s], [s for s in self._scans if s.t_s > t_s]
         for scan in scans:

@@ -54,7 +54,6 @@ def update_pose(
         raise ValueError(f"points, pixels and covariances must have the same length, got {len(X)}, {len(z)}, {len(Sig)}")
     P0_inv = np.linalg.inv(P_prior)
     T = np.array(T_world_body_prior, dtype=float)
-    info = P0_inv
     for _ in range(max(iterations, 1)):
         uv, Hp, Hx, in_front = _project(T, X, camera, T_body_cam)
         ok = in_front & np.isfinite(z).all(axis=1)

@@ -1,8 +1,9 @@
 """The per-point work after the correlation: gate, best and second peak, sub-pixel refinement.
 
-One compiled function (numba) instead of some twenty small numpy calls: tracking calls it once
-per point and frame, so its fixed cost matters more than its arithmetic (about 100 us of numpy
-call overhead per point before, a few us now).
+One compiled function (numba, about 5 us a call) instead of some twenty small numpy calls:
+tracking calls it once per point and frame, so its fixed cost matters more than its arithmetic.
+A whole ``PatchTracker.track`` on an 800x600 frame went from 111 to 54 us with a 4 px^2 gate
+and from 139 to 75 us with 25 px^2 (median of three runs).
 
 :func:`select_match` takes the NCC score grid of a search and returns the status code, the best
 candidate, its score, the best other peak and the sub-pixel offset; :mod:`.tracker` turns them into
