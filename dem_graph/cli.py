@@ -88,19 +88,30 @@ def _open_dataset(path: Path):
 
 @main.command()
 @click.argument("dataset", type=click.Path(path_type=Path))
-@click.option("--estimator", type=click.Choice(["gm", "ptpm"]), default="ptpm", show_default=True, help="Which estimator.")
+@click.option(
+    "--estimator",
+    type=click.Choice(["gm", "ptpm", "isam2", "isam2-batch"]),
+    default="ptpm",
+    show_default=True,
+    help="gm, ptpm: the paper's EKF variants; isam2: the online graph (fixed-lag smoothing); isam2-batch: the online pass, then the whole log smoothed.",
+)
+@click.option("--lag", "lag_s", type=float, default=None, help="isam2: fixed lag of the smoother, seconds.")
+@click.option("--keyframe-every", type=int, default=None, help="isam2: a keyframe every this many frames (1: every frame).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Run folder to write.")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="YAML run configuration (see config.yaml of a run).")
 @click.option("--max-points", type=int, default=None, help="Cap n on live points.")
 @click.option("--no-odometry", is_flag=True, help="Ignore the dataset's odometry (constant-velocity model).")
 @click.option("--max-frames", type=int, default=None, help="Stop after this many camera frames.")
 @_friendly_errors
-def run(dataset, estimator, out_dir, config_path, max_points, no_odometry, max_frames) -> None:
-    """Run an estimator over a dataset folder; write trajectory.tum, points.ply, metrics.json, config.yaml."""
+def run(dataset, estimator, lag_s, keyframe_every, out_dir, config_path, max_points, no_odometry, max_frames) -> None:
+    """Run an estimator over a dataset folder; write trajectory.tum, points.ply, metrics.json, config.yaml
+    (isam2 also trajectory_smoothed.tum; isam2-batch also trajectory_online.tum)."""
     from dem_graph.run import load_run_config, run_estimator, summary_lines, write_run
 
     sequence = _open_dataset(dataset)
-    config = load_run_config(config_path, estimator=estimator, max_points=max_points, no_odometry=no_odometry, max_frames=max_frames)
+    config = load_run_config(
+        config_path, estimator=estimator, max_points=max_points, no_odometry=no_odometry, max_frames=max_frames, lag_s=lag_s, keyframe_every=keyframe_every
+    )
     result = run_estimator(sequence, config)
     paths = write_run(result, out_dir)
     for line in summary_lines(result):

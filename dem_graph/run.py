@@ -17,32 +17,41 @@ import numpy as np
 import yaml
 from pydantic import Field, ValidationError
 
-from dem_graph.config_types import StrictModel, format_validation_error
+from dem_graph.config_types import format_validation_error
 from dem_graph.datasets.base import Sequence
 from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
 from dem_graph.errors import ConfigError, DemGraphError
 from dem_graph.estimators.base import Estimator, EstimatorResult
-from dem_graph.estimators.ekf import EkfConfig, EkfSlam
+from dem_graph.estimators.ekf import EkfConfig, EkfOptions, EkfSlam
+from dem_graph.estimators.isam2 import Isam2Config, Isam2Options, Isam2Slam
+from dem_graph.estimators.settings import SharedSettings
 from dem_graph.evaluation.run_output import frame_timing_summary, write_run_outputs
 from dem_graph.evaluation.trajectory_metrics import nees_bounds, pose_nees, trajectory_metrics
 from dem_graph.progress import progress
 
 log = logging.getLogger(__name__)
 
-EstimatorName = Literal["gm", "ptpm"]
+EstimatorName = Literal["gm", "ptpm", "isam2", "isam2-batch"]
 ESTIMATORS = get_args(EstimatorName)
 
 
-class RunConfig(StrictModel):
+class RunConfig(SharedSettings):
+    """A run: which estimator, the settings all estimators share (front end, motion model, false
+    matches), and each estimator's own options."""
+
     estimator: EstimatorName = Field("ptpm", description="which estimator")
-    ekf: EkfConfig = Field(default_factory=EkfConfig, description="EKF baselines (gm, ptpm)")
+    ekf: EkfOptions = Field(default_factory=EkfOptions, description="EKF baselines (gm, ptpm)")
+    isam2: Isam2Options = Field(default_factory=Isam2Options, description="the graph estimator (isam2, isam2-batch)")
     max_frames: int | None = Field(None, ge=1, description="stop after this many camera frames")
 
 
 def make_estimator(sequence: Sequence, config: RunConfig) -> Estimator:
+    shared = {k: getattr(config, k) for k in SharedSettings.model_fields}
+    args = (sequence.rig, sequence.T_world_body_initial, sequence.t_start_s, sequence.has_odometry)
     if config.estimator in ("gm", "ptpm"):
-        ekf = config.ekf.model_copy(update={"variant": config.estimator})
-        return EkfSlam(sequence.rig, sequence.T_world_body_initial, sequence.t_start_s, sequence.has_odometry, ekf)
+        return EkfSlam(*args, EkfConfig(**shared, **dict(config.ekf), variant=config.estimator))
+    if config.estimator in ("isam2", "isam2-batch"):
+        return Isam2Slam(*args, Isam2Config(**shared, **dict(config.isam2), batch=config.estimator == "isam2-batch"))
     raise DemGraphError(f"unknown estimator '{config.estimator}'; choose one of {', '.join(ESTIMATORS)}")
 
 
@@ -100,6 +109,8 @@ def compute_metrics(sequence: Sequence, run: RunResult) -> dict:
     if gt is not None and len(res.frames) > 1:
         est = res.trajectory()
         metrics["trajectory"] = trajectory_metrics(est, gt.trajectory).as_dict()
+        for name, extra in res.extra_trajectories().items():
+            metrics[name] = trajectory_metrics(extra, gt.trajectory).as_dict()
         nees = pose_nees(est.poses_se3, gt.trajectory.at(est.t_s), res.pose_covariances())
         lo, hi = nees_bounds(6, 0.95)
         later = nees[1:]
@@ -107,7 +118,15 @@ def compute_metrics(sequence: Sequence, run: RunResult) -> dict:
     return metrics
 
 
-def load_run_config(path: str | Path | None = None, estimator: str | None = None, max_points: int | None = None, no_odometry: bool = False, max_frames: int | None = None) -> RunConfig:
+def load_run_config(
+    path: str | Path | None = None,
+    estimator: str | None = None,
+    max_points: int | None = None,
+    no_odometry: bool = False,
+    max_frames: int | None = None,
+    lag_s: float | None = None,
+    keyframe_every: int | None = None,
+) -> RunConfig:
     """The run configuration: defaults, then the YAML file at ``path``, then the given overrides."""
     data: dict = {}
     if path is not None:
@@ -127,9 +146,13 @@ def load_run_config(path: str | Path | None = None, estimator: str | None = None
         if max_frames is not None:
             config.max_frames = max_frames
         if max_points is not None:
-            config.ekf.frontend.max_points = max_points
+            config.frontend.max_points = max_points
         if no_odometry:
-            config.ekf.motion.model = "constant_velocity"
+            config.motion.model = "constant_velocity"
+        if lag_s is not None:
+            config.isam2.lag_s = lag_s
+        if keyframe_every is not None:
+            config.isam2.keyframe_every = keyframe_every
     except ValidationError as exc:
         raise ConfigError(f"invalid run configuration: {format_validation_error(exc)}", path) from None
     return config
@@ -162,4 +185,4 @@ def write_run(run: RunResult, out_dir: str | Path) -> dict[str, Path]:
     }
     if not res.frames:
         raise DemGraphError("the run produced no pose: nothing to write")
-    return write_run_outputs(out_dir, res.trajectory(), pts["xyz"], attributes, run.metrics, run.config.model_dump(mode="json"))
+    return write_run_outputs(out_dir, res.trajectory(), pts["xyz"], attributes, run.metrics, run.config.model_dump(mode="json"), res.extra_trajectories())

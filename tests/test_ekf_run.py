@@ -10,9 +10,8 @@ from dem_graph.estimators.ekf import EkfConfig
 from dem_graph.run import RunConfig, run_estimator
 
 
-def _run(log, estimator, **ekf_overrides):
-    ekf = EkfConfig.model_validate({**EkfConfig().model_dump(), **ekf_overrides})
-    return run_estimator(log, RunConfig(estimator=estimator, ekf=ekf))
+def _run(log, estimator, **overrides):
+    return run_estimator(log, RunConfig.model_validate({"estimator": estimator, **overrides}))
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +80,7 @@ def test_ptpm_search_regions_shrink_within_a_frame(smoke_log, model, min_shrink)
 def test_ptpm_rejects_more_false_matches_than_gm(smoke_log):
     counts, drift = {}, {}
     for name in ("gm", "ptpm"):
-        run = _run(smoke_log, name, inject_false_match_fraction=0.1, inject_false_match_offset_px=12.0)
+        run = _run(smoke_log, name, false_matches={"fraction": 0.1, "offset_px": 12.0})
         ev = run.metrics["events"]
         assert ev["injected"] > 300
         counts[name] = ev.get("injected_rejected", 0) / ev["injected"]

@@ -62,9 +62,16 @@ class EstimatorResult:
     frames: list[FrameRecord] = field(default_factory=list)
     points: MapPoints = field(default_factory=MapPoints)
     counters: Counter = field(default_factory=Counter)
+    # other estimates of every frame's pose, by name (a file stem): for the graph estimator, the
+    # trajectory as smoothed at the end of the run, next to the per-frame one
+    extra_poses: dict[str, np.ndarray] = field(default_factory=dict)
 
     def trajectory(self) -> Trajectory:
         return Trajectory.from_poses(np.array([f.t_s for f in self.frames]), np.array([f.T_world_body for f in self.frames]))
+
+    def extra_trajectories(self) -> dict[str, Trajectory]:
+        t = np.array([f.t_s for f in self.frames])
+        return {name: Trajectory.from_poses(t, poses) for name, poses in self.extra_poses.items()}
 
     def pose_covariances(self) -> np.ndarray:
         return np.array([f.pose_covariance for f in self.frames])

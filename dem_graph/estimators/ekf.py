@@ -23,32 +23,22 @@ from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
 from dem_graph.estimators.base import Estimator, EstimatorResult, FrameRecord
 from dem_graph.estimators.ekf_filter import EkfState
 from dem_graph.estimators.odometry import OdometryIntegrator
-from dem_graph.frontend.frontend import FrontEnd, FrontendConfig
+from dem_graph.estimators.settings import FalseMatches, MotionConfig, SharedSettings
+from dem_graph.frontend.frontend import FrontEnd
 from dem_graph.frontend.pose_history import PoseHistory
 from dem_graph.geometry.rig import SensorRig
-from dem_graph.geometry.se3 import invert, transform_points
 
 
-class MotionConfig(StrictModel):
-    model: Literal["auto", "odometry", "constant_velocity"] = Field(
-        "auto", description="auto: odometry when the dataset has it, constant velocity otherwise"
-    )
-    sigma_angular_acc_radps2: float = Field(1.5, gt=0, description="constant-velocity model: angular acceleration noise, rad/s^2/sqrt(Hz)")
-    sigma_linear_acc_mps2: float = Field(1.5, gt=0, description="constant-velocity model: linear acceleration noise, m/s^2/sqrt(Hz)")
-    initial_speed_mps: float = Field(0.0, description="constant-velocity model: initial forward speed, m/s")
-    initial_sigma_speed_mps: float = Field(1.0, gt=0, description="constant-velocity model: initial speed uncertainty, m/s")
-    wait_for_odometry: bool = Field(True, description="hold a frame until the odometry covering its time arrives (instead of extrapolating)")
-    initial_sigma_pose: float = Field(1e-4, gt=0, description="initial pose uncertainty (radians and metres); the estimate is anchored at the initial pose")
+class EkfOptions(StrictModel):
+    """What only the EKF baselines have (the variant is the estimator's name)."""
 
-
-class EkfConfig(StrictModel):
-    variant: Literal["gm", "ptpm"] = Field("ptpm", description="gm: one batch update per image; ptpm: point to point")
-    frontend: FrontendConfig = Field(default_factory=FrontendConfig)
-    motion: MotionConfig = Field(default_factory=MotionConfig)
     gm_search_half_size_px: int = Field(20, ge=1, description="GM: constant half size of every search region, pixels")
-    inject_false_match_fraction: float = Field(0.0, ge=0, le=1, description="replace this fraction of matches by wrong ones (robustness studies)")
-    inject_false_match_offset_px: float = Field(12.0, ge=0, description="distance of an injected wrong match from the true one, pixels")
-    inject_seed: int = Field(0, ge=0, description="seed of the injected wrong matches")
+
+
+class EkfConfig(SharedSettings, EkfOptions):
+    """The EKF's options with the settings every estimator shares."""
+
+    variant: Literal["gm", "ptpm"] = Field("ptpm", description="gm: one batch update per image; ptpm: point to point")
 
 
 class EkfSlam(Estimator):
@@ -60,7 +50,7 @@ class EkfSlam(Estimator):
         self.rig = rig
         self.frontend = FrontEnd(self.config.frontend, rig)
         m = self.config.motion
-        self.use_odometry = m.model == "odometry" or (m.model == "auto" and has_odometry)
+        self.use_odometry = m.uses_odometry(has_odometry)
         v0 = np.zeros(6)
         v0[3] = m.initial_speed_mps
         P_v0 = np.diag([0.3**2] * 3 + [m.initial_sigma_speed_mps**2] * 3)
@@ -72,7 +62,7 @@ class EkfSlam(Estimator):
         self._scans: list[LaserScan] = []
         self._pending_frame: CameraFrame | None = None
         self._result = EstimatorResult(self.name)
-        self._rng = np.random.default_rng(self.config.inject_seed)
+        self._false_matches = FalseMatches(self.config.false_matches, self.frontend.counters)
         self._gate = self.frontend.tracker.gate_chi2
         self._R = self.config.frontend.sigma_px**2
         # per point searched in the last frame, in search order: the region's half sizes (px) as
@@ -141,14 +131,6 @@ class EkfSlam(Estimator):
     def _camera_pose(self) -> np.ndarray:
         return self.state.T_world_body @ self.rig.T_body_cam
 
-    def _inject(self, uv_found: np.ndarray | None, uv_true_guess: np.ndarray) -> tuple[np.ndarray | None, bool]:
-        f = self.config.inject_false_match_fraction
-        if f <= 0 or self._rng.random() >= f:
-            return uv_found, False
-        a = self._rng.uniform(0, 2 * np.pi)
-        base = uv_found if uv_found is not None else uv_true_guess
-        return base + self.config.inject_false_match_offset_px * np.array([np.cos(a), np.sin(a)]), True
-
     def _track_and_update(self, image, t_s: float) -> tuple[int, float, float]:
         st = self.state
         self.last_search_sizes = []
@@ -167,10 +149,10 @@ class EkfSlam(Estimator):
             for i in idx[in_front]:
                 res = fe.track(image, int(st.point_ids[i]), None if warps is None else warps[i], uv[i], half_size_px=half, t_s=t_s, T_world_cam=T_wc)
                 self.last_search_sizes.append(res.search_half_size_px)
-                found, injected = self._inject(res.uv_px if res.ok else None, uv[i])
+                found, injected = self._false_matches.apply(res.uv_px if res.ok else None, uv[i])
                 if found is None:
                     continue
-                if injected and not self._injected_accepted(np.max(np.abs(found - uv[i])) <= half):
+                if injected and not self._false_matches.record(np.max(np.abs(found - uv[i])) <= half):
                     continue
                 ok_idx.append(i)
                 innov.append(found - uv[i])
@@ -198,13 +180,13 @@ class EkfSlam(Estimator):
                 S = st.sequential_innovation_covariance(i, Hp[i], Hx[i], self._R)
                 res = fe.track(image, int(st.point_ids[i]), None if warps is None else warps[i], uv_i, S_px2=S, t_s=t_s, T_world_cam=T_wc)
                 self.last_search_sizes.append(res.search_half_size_px)
-                found, injected = self._inject(res.uv_px if res.ok else None, uv_i)
+                found, injected = self._false_matches.apply(res.uv_px if res.ok else None, uv_i)
                 tb = time.perf_counter()
                 t_track += tb - ta
                 if found is None:
                     continue
                 y = found - uv_i
-                if injected and not self._injected_accepted(y @ np.linalg.solve(S, y) <= self._gate):
+                if injected and not self._false_matches.record(y @ np.linalg.solve(S, y) <= self._gate):
                     continue
                 st.sequential_update(i, y, Hp[i], Hx[i], S)
                 n_ok += 1
@@ -215,12 +197,6 @@ class EkfSlam(Estimator):
             t_update += time.perf_counter() - tc
         return n_ok, t_track, t_update
 
-    def _injected_accepted(self, inside_region: bool) -> bool:
-        counters = self.frontend.counters
-        counters["injected"] += 1
-        counters["injected_accepted" if inside_region else "injected_rejected"] += 1
-        return inside_region
-
     # --- map management ----------------------------------------------------------------------
     def _archive(self, i: int, reason: str) -> None:
         st = self.state
@@ -230,53 +206,21 @@ class EkfSlam(Estimator):
     def _drop_points(self) -> np.ndarray:
         """Archive the points that left the view or were lost; returns the pixels of those kept (n,2)."""
         st = self.state
-        if st.n_points == 0:
-            return np.zeros((0, 2))
-        cam = self.rig.camera_model
-        T_cam_world = invert(self._camera_pose())
-        uv, in_front = cam.project(transform_points(T_cam_world, st.points_xyz))
-        p_body = transform_points(invert(st.T_world_body), st.points_xyz)
-        margin = self.config.frontend.image_margin_px + self.config.frontend.tracker.patch_half_size_px
-        visible = cam.in_image(uv, margin)
-        max_misses = self.config.frontend.max_misses
-        remove = np.zeros(st.n_points, dtype=bool)
-        for i in range(st.n_points):
-            reason = None
-            if not in_front[i] or p_body[i, 0] < 0.0:
-                reason = "behind"
-            elif not visible[i]:
-                reason = "left_image"
-            elif self.frontend.tracks[int(st.point_ids[i])].misses >= max_misses:
-                reason = "lost"
-            if reason:
-                self._archive(i, reason)
-                remove[i] = True
+        uv, reasons = self.frontend.drop_reasons(st.point_ids, st.points_xyz, st.T_world_body)
+        remove = np.array([r is not None for r in reasons], dtype=bool)
+        for i in np.flatnonzero(remove):
+            self._archive(int(i), reasons[i])
         st.remove_points(remove)
         return uv[~remove]
 
-    def _speed_mps(self) -> float:
-        return float(np.linalg.norm(self.state.v_body[3:]))
+    def _speed_mps(self) -> float | None:
+        return float(np.linalg.norm(self.state.v_body[3:])) if len(self.history) > 2 else None
 
     def _add_points(self, image, t_s: float, occupied_uv: np.ndarray) -> None:
         """New laser and camera points, away from the live points' pixels ``occupied_uv``."""
         st = self.state
-        fe = self.frontend
-        focus = fe.focus_area(self._speed_mps() if len(self.history) > 2 else None)
-        T_body_world = invert(st.T_world_body)
-        cam = self.rig.camera_model
-        new = []
         scans, self._scans = [s for s in self._scans if s.t_s <= t_s], [s for s in self._scans if s.t_s > t_s]
-        for scan in scans:
-            # the paper's Eq. 2: the laser at the scan's time, expressed in the current body frame
-            T_body_laser_now = T_body_world @ self.history.at(scan.t_s) @ self.rig.T_body_laser
-            pts = fe.new_laser_points(scan.ranges_m, T_body_laser_now, image, t_s, st.T_world_body, focus, occupied_uv)
-            if pts:
-                occupied_uv = np.concatenate([occupied_uv, cam.project(transform_points(fe.T_cam_body, np.array([p.p_body for p in pts])))[0]])
-            new.extend(pts)
-        live_body = transform_points(T_body_world, st.points_xyz) if st.n_points else np.zeros((0, 3))
-        if new:
-            live_body = np.concatenate([live_body, np.array([p.p_body for p in new])])
-        new.extend(fe.new_camera_points(image, t_s, st.T_world_body, focus, live_body, occupied_uv))
+        new = self.frontend.new_points(image, t_s, st.T_world_body, scans, self.history, st.points_xyz, occupied_uv, self._speed_mps())
         if new:
             st.add_points(np.array([p.point_id for p in new]), np.array([p.p_body for p in new]), np.array([p.Sigma_body for p in new]))
 
@@ -294,4 +238,4 @@ class EkfSlam(Estimator):
         return res
 
 
-__all__ = ["EkfConfig", "EkfSlam", "MotionConfig"]
+__all__ = ["EkfConfig", "EkfOptions", "EkfSlam", "MotionConfig"]

@@ -15,6 +15,7 @@
 - :func:`odometry_factor`: a ``BetweenFactorPose3`` with the increment's 6x6 covariance.
 - :func:`projection_factor`: a ``GenericProjectionFactorCal3DS2`` with ``T_body_cam`` as the
   sensor offset and a robust (Huber) kernel.
+- :func:`seed_factors`: the factors a new point enters the graph with (laser or flat-ground seed).
 
 Covariances are in gtsam's tangent order [rotation, translation] (the package convention).
 """
@@ -24,7 +25,9 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from dem_graph.frontend.frontend import LASER
 from dem_graph.geometry.camera import PinholeCamera
+from dem_graph.geometry.se3 import invert
 
 HUBER_K = 1.345  # 95 % efficiency on Gaussian residuals
 
@@ -86,3 +89,27 @@ def projection_factor(
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K), noise)
     uv = np.asarray(uv_px, dtype=float)
     return gtsam.GenericProjectionFactorCal3DS2(gtsam.Point2(uv[0], uv[1]), noise, pose_key, point_key, K, gtsam.Pose3(np.asarray(T_body_cam, dtype=float)))
+
+
+def seed_factors(
+    pose_key: int, point_key: int, kind: int, p_body: np.ndarray, Sigma_body: np.ndarray, camera: PinholeCamera, K: gtsam.Cal3DS2, T_body_cam: np.ndarray, sigma_seed_px: float
+) -> list[gtsam.NonlinearFactor]:
+    """The factors a new point enters the graph with, from the front end's seed ``p_body`` (m) and
+    ``Sigma_body`` (m^2) in the frame of body pose ``pose_key``.
+
+    - Laser point: the point in the body frame (the paper's Eq. 2), with its covariance.
+    - Camera point (flat-ground guess): the range from the camera, with the covariance's variance
+      along the camera's ray, and the pixel it was seeded at, with ``sigma_seed_px``.
+    """
+    p = np.asarray(p_body, dtype=float).reshape(3)
+    if kind == LASER:
+        return [point_in_frame_factor(pose_key, point_key, p, Sigma_body)]
+    ray = p - np.asarray(T_body_cam)[:3, 3]
+    range_m = float(np.linalg.norm(ray))
+    r = ray / range_m
+    sigma_along = float(np.sqrt(r @ np.asarray(Sigma_body) @ r))
+    p_cam = invert(T_body_cam)[:3, :3] @ p + invert(T_body_cam)[:3, 3]
+    uv, in_front = camera.project(p_cam[None])
+    if not in_front[0]:
+        raise ValueError(f"a camera seed must lie in front of the camera, got {p} in the body frame")
+    return [range_factor(pose_key, point_key, range_m, sigma_along, T_body_cam), projection_factor(pose_key, point_key, uv[0], sigma_seed_px, K, T_body_cam, robust=False)]

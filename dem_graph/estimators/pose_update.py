@@ -18,7 +18,7 @@ from dem_graph.geometry.se3 import invert
 HUBER_K = 1.345
 
 
-def _project(T_world_body: np.ndarray, X_world: np.ndarray, camera: PinholeCamera, T_body_cam: np.ndarray):
+def project_with_jacobians(T_world_body: np.ndarray, X_world: np.ndarray, camera: PinholeCamera, T_body_cam: np.ndarray):
     """Pixels (n,2), Jacobians w.r.t. the right pose perturbation (n,2,6) and the point (n,2,3), in-front mask."""
     R, t = T_world_body[:3, :3], T_world_body[:3, 3]
     T_cam_body = invert(T_body_cam)
@@ -55,7 +55,7 @@ def update_pose(
     P0_inv = np.linalg.inv(P_prior)
     T = np.array(T_world_body_prior, dtype=float)
     for _ in range(max(iterations, 1)):
-        uv, Hp, Hx, in_front = _project(T, X, camera, T_body_cam)
+        uv, Hp, Hx, in_front = project_with_jacobians(T, X, camera, T_body_cam)
         ok = in_front & np.isfinite(z).all(axis=1)
         R_i = sigma_px**2 * np.eye(2) + Hx @ Sig @ np.swapaxes(Hx, 1, 2)
         W = np.linalg.inv(R_i[ok])  # (m,2,2)

@@ -58,7 +58,7 @@ class EstimatorBenchResult:
 
 def _config_for(estimator: str, max_points: int, rig) -> RunConfig:
     config = RunConfig(estimator=estimator)
-    fe = config.ekf.frontend
+    fe = config.frontend
     fe.max_points = max_points
     fe.max_laser_points = int(round(0.7 * max_points))
     # about as many focus cells as points wanted, so that the cap is what limits

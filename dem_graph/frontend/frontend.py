@@ -258,6 +258,47 @@ class FrontEnd:
             out.append(NewPoint(point_id, CAMERA, p, Sigma))
         return out
 
+    def drop_reasons(self, point_ids, X_world: np.ndarray, T_world_body: np.ndarray) -> tuple[np.ndarray, list[str | None]]:
+        """Which live points to drop from the pose ``T_world_body``: per point, ``"behind"``,
+        ``"left_image"``, ``"lost"`` (too many misses) or None (kept); and every point's pixel (n,2)."""
+        n = len(point_ids)
+        if n == 0:
+            return np.zeros((0, 2)), []
+        T_body_world = invert(T_world_body)
+        p_body = transform_points(T_body_world, X_world)
+        uv, in_front = self.camera.project(transform_points(self.T_cam_body, p_body))
+        visible = self.camera.in_image(uv, self.config.image_margin_px + self.config.tracker.patch_half_size_px)
+        reasons: list[str | None] = []
+        for i in range(n):
+            if not in_front[i] or p_body[i, 0] < 0.0:
+                reasons.append("behind")
+            elif not visible[i]:
+                reasons.append("left_image")
+            elif self.tracks[int(point_ids[i])].misses >= self.config.max_misses:
+                reasons.append("lost")
+            else:
+                reasons.append(None)
+        return uv, reasons
+
+    def new_points(self, image, t_s: float, T_world_body: np.ndarray, scans, history, live_X_world: np.ndarray, occupied_uv: np.ndarray, speed_mps: float | None) -> list[NewPoint]:
+        """New laser points from ``scans`` (each placed with the pose ``history`` at its time: Eq. 2),
+        then camera points at the empty focus cells; away from the live points' pixels ``occupied_uv``.
+        Positions are in the body frame of ``T_world_body``."""
+        focus = self.focus_area(speed_mps)
+        T_body_world = invert(T_world_body)
+        new: list[NewPoint] = []
+        for scan in scans:
+            T_body_laser_now = T_body_world @ history.at(scan.t_s) @ self.rig.T_body_laser
+            pts = self.new_laser_points(scan.ranges_m, T_body_laser_now, image, t_s, T_world_body, focus, occupied_uv)
+            if pts:
+                occupied_uv = np.concatenate([occupied_uv, self.camera.project(transform_points(self.T_cam_body, np.array([p.p_body for p in pts])))[0]])
+            new.extend(pts)
+        live_body = transform_points(T_body_world, live_X_world) if len(live_X_world) else np.zeros((0, 3))
+        if new:
+            live_body = np.concatenate([live_body, np.array([p.p_body for p in new])])
+        new.extend(self.new_camera_points(image, t_s, T_world_body, focus, live_body, occupied_uv))
+        return new
+
     def drop(self, point_id: int, reason: str) -> PointTrack:
         self.counters[f"dropped_{reason}"] += 1
         return self.tracks.pop(point_id)

@@ -1,0 +1,396 @@
+"""The factor-graph estimator: keyframes in an incremental fixed-lag smoother (iSAM2), a pose per frame.
+
+Every frame (docs/isam2_design.md):
+1. predict the pose from odometry (or a constant-velocity guess) and propagate its covariance;
+2. track every live point in its search region, the 2x2 innovation covariance of the predicted
+   pose (relative to the map) and of the point's own covariance (its information from the
+   keyframes that saw it, poses held fixed), plus the pixel noise;
+3. update the pose against the points (:func:`update_pose`: points fixed, their covariance as
+   pixel noise, Huber weights). This is the frame's output: what was known at that frame.
+
+Every ``keyframe_every`` frames (sooner when the map runs short of points), the frame becomes a
+keyframe of the graph (:class:`KeyframeGraph`): a pose variable, the odometry between keyframes, a
+projection factor for every inlier observation of the frame, and the new points with their laser or
+flat-ground factors; then one iSAM2 update over the lag. The keyframe's smoothed pose and the live
+points' smoothed positions replace the per-frame ones.
+
+Non-keyframe observations are used by the per-frame pose only (the graph holds the keyframes':
+consecutive frames see a point from nearly the same place, and one iSAM2 update per frame costs
+more than the 40 ms a frame has; see the design notes). ``keyframe_every: 1`` puts every frame in.
+
+``batch: true`` (``--estimator isam2-batch``) also records every observation of every frame, and at
+the end smooths the whole log at once (:mod:`dem_graph.estimators.batch`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+from pydantic import Field
+
+from dem_graph.config_types import StrictModel
+from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.estimators.base import Estimator, EstimatorResult, FrameRecord
+from dem_graph.estimators.graph_factors import calibration, odometry_factor, projection_factor, seed_factors
+from dem_graph.estimators.keyframe_graph import KeyframeGraph
+from dem_graph.estimators.measurement_log import MeasurementLog
+from dem_graph.estimators.odometry import OdometryIntegrator
+from dem_graph.estimators.pose_update import project_with_jacobians, update_pose
+from dem_graph.estimators.settings import FalseMatches, SharedSettings
+from dem_graph.frontend.frontend import FrontEnd, NewPoint
+from dem_graph.frontend.pose_history import PoseHistory
+from dem_graph.geometry.lie import adjoint, local, retract, skew
+from dem_graph.geometry.rig import SensorRig
+from dem_graph.geometry.se3 import invert, transform_points
+
+log = logging.getLogger(__name__)
+
+
+class Isam2Options(StrictModel):
+    """What only the graph estimator has."""
+
+    keyframe_every: int = Field(5, ge=1, description="a keyframe every this many frames (1: every frame)")
+    keyframe_min_live_fraction: float = Field(0.8, ge=0, le=1, description="also a keyframe when the live points fall below this fraction of the cap (new points enter at keyframes)")
+    lag_s: float = Field(1.5, gt=0, description="fixed lag of the smoother, seconds: older variables are marginalised")
+    relinearize_threshold: float = Field(0.01, gt=0, description="iSAM2 relinearises a variable whose update exceeds this")
+    relinearize_skip: int = Field(1, ge=1, description="iSAM2 checks for relinearisation every this many updates")
+    keyframe_weighting: bool = Field(
+        True, description="a keyframe observation carries the information of the frames that tracked the point since its last keyframe observation (sigma_px / sqrt(n))"
+    )
+    robust: bool = Field(True, description="Huber kernel on projection factors and per-frame pixels")
+    outlier_chi2: float = Field(9.21, gt=0, description="an observation whose normalised residual after the frame's pose update exceeds this (chi-square, 2 dof; 9.21 = 99 %) stays out of the graph")
+    pose_covariance_from_graph: bool = Field(True, description="each keyframe's pose covariance from the smoother's marginal (about 2-5 ms a keyframe)")
+    batch_max_iterations: int = Field(30, ge=1, description="isam2-batch: Levenberg-Marquardt iterations at most")
+    batch_relative_error_tol: float = Field(1e-5, gt=0, description="isam2-batch: stop when the error falls by less than this fraction")
+
+
+class Isam2Config(SharedSettings, Isam2Options):
+    """The graph estimator's options with the settings every estimator shares."""
+
+    batch: bool = Field(False, description="record every observation and smooth the whole log at the end (isam2-batch)")
+
+
+class LivePoints:
+    """The points being tracked: ids, kinds, world positions and each one's 3x3 information
+    (its seed's plus its keyframe observations', poses held fixed)."""
+
+    def __init__(self):
+        self.ids = np.zeros(0, dtype=np.int64)
+        self.kinds = np.zeros(0, dtype=np.int8)
+        self.X = np.zeros((0, 3))
+        self.info = np.zeros((0, 3, 3))
+        self.n_since_keyframe = np.zeros(0, dtype=np.int64)  # inlier frames since the last keyframe observation
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def add(self, ids, kinds, X_world, Sigma_world) -> None:
+        self.ids = np.concatenate([self.ids, np.asarray(ids, dtype=np.int64)])
+        self.kinds = np.concatenate([self.kinds, np.asarray(kinds, dtype=np.int8)])
+        self.X = np.concatenate([self.X, np.asarray(X_world, dtype=float).reshape(-1, 3)])
+        self.info = np.concatenate([self.info, np.linalg.inv(np.asarray(Sigma_world, dtype=float).reshape(-1, 3, 3))])
+        self.n_since_keyframe = np.concatenate([self.n_since_keyframe, np.zeros(len(ids), dtype=np.int64)])
+
+    def keep(self, mask: np.ndarray) -> None:
+        self.ids, self.kinds, self.X, self.info = self.ids[mask], self.kinds[mask], self.X[mask], self.info[mask]
+        self.n_since_keyframe = self.n_since_keyframe[mask]
+
+    def covariances(self) -> np.ndarray:
+        return np.linalg.inv(self.info) if len(self) else np.zeros((0, 3, 3))
+
+
+class Isam2Slam(Estimator):
+    """Keyframe iSAM2 smoothing with the shared front end; feed it events in time order."""
+
+    def __init__(self, rig: SensorRig, T_world_body_initial: np.ndarray, t_start_s: float, has_odometry: bool, config: Isam2Config | None = None):
+        self.config = config or Isam2Config()
+        c = self.config
+        self.name = "isam2-batch" if c.batch else "isam2"
+        self.rig = rig
+        self.frontend = FrontEnd(c.frontend, rig)
+        self.use_odometry = c.motion.uses_odometry(has_odometry)
+        self._K = calibration(rig.camera_model)
+        self._sigma_px = c.frontend.sigma_px
+        self._gate = self.frontend.tracker.gate_chi2
+        self.t_s = float(t_start_s)
+        self.T = np.array(T_world_body_initial, dtype=float)
+        P0 = np.eye(6) * c.motion.initial_sigma_pose**2
+        self._T0, self._P0 = self.T.copy(), P0
+        self.P_loc = P0.copy()  # pose covariance relative to the map (search regions)
+        self.graph = KeyframeGraph(self.T, P0, self.t_s, c.lag_s, c.relinearize_threshold, c.relinearize_skip)
+        self.P_kf = P0.copy()  # marginal covariance of the last keyframe's pose
+        self.T_kf = self.T.copy()  # the last keyframe's pose, smoothed when it was made
+        self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))  # motion since the last keyframe
+        self.frames_since_kf = 0
+        self.live = LivePoints()
+        self.history = PoseHistory(window=c.keyframe_every + 5)
+        self.history.append(self.t_s, self.T)
+        self._odometry = OdometryIntegrator(self.t_s)
+        self._v_body = np.zeros(6)  # constant-velocity model: [angular, linear] per second
+        self._v_body[3] = c.motion.initial_speed_mps
+        self._speed_mps: float | None = None
+        self._scans: list[LaserScan] = []
+        self._pending_frame: CameraFrame | None = None
+        self._frames: list[FrameRecord] = []
+        self._frame_anchor: list[tuple[int, np.ndarray]] = []  # per frame: (keyframe, T_keyframe_frame)
+        self._archived: list[tuple[int, int, np.ndarray, int, float]] = []  # id, kind, covariance, n_tracked, created
+        self._false_matches = FalseMatches(c.false_matches, self.frontend.counters)
+        self.log = MeasurementLog() if c.batch else None
+        self.batch_result = None
+
+    # --- events ------------------------------------------------------------------------------
+    def on_odometry(self, event: Odometry) -> None:
+        self._odometry.add(event)
+        if self._pending_frame is not None and event.t_s >= self._pending_frame.t_s:
+            self._process(self._pending_frame)
+
+    def on_scan(self, event: LaserScan) -> None:
+        self._scans.append(event)
+
+    def on_frame(self, event: CameraFrame) -> FrameRecord | None:
+        if self._pending_frame is not None:
+            self._process(self._pending_frame)
+        if self.use_odometry and self.config.motion.wait_for_odometry and not self._odometry.covers(event.t_s):
+            self._pending_frame = event
+            return None
+        return self._process(event)
+
+    def finish(self) -> None:
+        if self._pending_frame is not None:
+            self._process(self._pending_frame)
+        if self.log is not None and self._frames:
+            from dem_graph.estimators.batch import smooth_batch
+
+            c = self.config
+            self.batch_result = smooth_batch(
+                self.log, self.rig, self._T0, self._P0, self.smoothed_poses(), self.graph.points, self._sigma_px, c.frontend.camera_point_sigma_px,
+                robust=c.robust, max_iterations=c.batch_max_iterations, relative_error_tol=c.batch_relative_error_tol,
+            )
+
+    # --- one frame ---------------------------------------------------------------------------
+    def _process(self, event: CameraFrame) -> FrameRecord:
+        self._pending_frame = None
+        timing = {}
+        t0 = time.perf_counter()
+        T_pred = self._predict(event.t_s)
+        t1 = time.perf_counter()
+        idx, uv = self._track(event.image, event.t_s, T_pred)
+        t2 = time.perf_counter()
+        inlier = self._update_pose(T_pred, idx, uv)
+        t3 = time.perf_counter()
+        timing["prediction"], timing["tracking"], timing["update"] = t1 - t0, t2 - t1, t3 - t2
+        self.live.n_since_keyframe[idx[inlier]] += 1
+        if self.log is not None:
+            self.log.add_frame(event.t_s, self._U_frame, self._Q_frame, self.live.ids[idx[inlier]], uv[inlier])
+        self.frames_since_kf += 1
+        is_keyframe = self.frames_since_kf >= self.config.keyframe_every or len(self.live) < self.config.keyframe_min_live_fraction * self.config.frontend.max_points
+        graph_s = 0.0
+        if is_keyframe:
+            tg = time.perf_counter()
+            self._keyframe_observations(idx[inlier], uv[inlier])
+            graph_s = time.perf_counter() - tg
+        tm = time.perf_counter()
+        self.history.append(event.t_s, self.T)
+        live_uv = self._drop_points()
+        map_s = time.perf_counter() - tm
+        if is_keyframe:
+            tg = time.perf_counter()
+            new = self._new_points(event.image, event.t_s, live_uv)
+            tn = time.perf_counter()
+            self._finish_keyframe(new, event.t_s)
+            graph_s += time.perf_counter() - tn
+            map_s += tn - tg
+        timing["map"], timing["graph"] = map_s, graph_s
+        timing["total"] = time.perf_counter() - t0
+        k = self.graph.last_keyframe
+        T_rel = invert(self.T_kf) @ self.T
+        self._frame_anchor.append((k, T_rel))
+        A = adjoint(invert(T_rel))
+        P_out = A @ self.P_kf @ A.T + self.Q_kf
+        record = FrameRecord(event.t_s, self.T.copy(), 0.5 * (P_out + P_out.T), len(self.live), int(len(idx)), timing)
+        self._frames.append(record)
+        return record
+
+    # --- prediction --------------------------------------------------------------------------
+    def _predict(self, t_s: float) -> np.ndarray:
+        dt = t_s - self.t_s
+        if dt < 0:
+            raise ValueError("frames must come in time order")
+        if self.use_odometry:
+            U, Q = self._odometry.increment(t_s)
+        else:
+            # constant velocity from the last two frames' poses; white acceleration over dt
+            m = self.config.motion
+            U = retract(np.eye(4), self._v_body * dt)
+            q = np.array([m.sigma_angular_acc_radps2] * 3 + [m.sigma_linear_acc_mps2] * 3) ** 2
+            Q = np.diag(q * max(dt, 1e-3) ** 3) + np.eye(6) * 1e-10
+        A = adjoint(invert(U))
+        self.P_loc = A @ self.P_loc @ A.T + Q
+        self.U_kf = self.U_kf @ U
+        self.Q_kf = A @ self.Q_kf @ A.T + Q
+        self._U_frame, self._Q_frame = U, Q
+        self._dt = dt
+        self.t_s = t_s
+        return self.T @ U
+
+    # --- tracking ----------------------------------------------------------------------------
+    def _track(self, image, t_s: float, T_pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Indices of the live points matched in this frame and their pixels (m,2)."""
+        live = self.live
+        if len(live) == 0:
+            return np.zeros(0, dtype=int), np.zeros((0, 2))
+        fe = self.frontend
+        cam, T_body_cam = self.rig.camera_model, self.rig.T_body_cam
+        uv, Hp, Hx, in_front = project_with_jacobians(T_pred, live.X, cam, T_body_cam)
+        S = Hp @ self.P_loc @ np.swapaxes(Hp, 1, 2) + Hx @ live.covariances() @ np.swapaxes(Hx, 1, 2) + self._sigma_px**2 * np.eye(2)
+        T_wc = T_pred @ T_body_cam
+        warps = fe.template_warps(live.ids, live.X, T_wc)
+        idx, found_uv = [], []
+        for i in np.flatnonzero(in_front):
+            res = fe.track(image, int(live.ids[i]), None if warps is None else warps[i], uv[i], S_px2=S[i], t_s=t_s, T_world_cam=T_wc)
+            found, injected = self._false_matches.apply(res.uv_px if res.ok else None, uv[i])
+            if found is None:
+                continue
+            if injected:
+                y = found - uv[i]
+                if not self._false_matches.record(y @ np.linalg.solve(S[i], y) <= self._gate):
+                    continue
+            idx.append(i)
+            found_uv.append(found)
+        return np.array(idx, dtype=int), np.array(found_uv, dtype=float).reshape(-1, 2)
+
+    def _update_pose(self, T_pred: np.ndarray, idx: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """The frame's pose from its matches; returns which matches are inliers after it."""
+        live = self.live
+        T_prev = self.T
+        if len(idx) == 0:
+            self.T = T_pred
+            inlier = np.zeros(0, dtype=bool)
+        else:
+            Sigma = live.covariances()[idx]
+            cam, T_body_cam = self.rig.camera_model, self.rig.T_body_cam
+            self.T, self.P_loc = update_pose(T_pred, self.P_loc, live.X[idx], Sigma, uv, cam, T_body_cam, self._sigma_px, robust=self.config.robust)
+            pred, _, Hx, _ = project_with_jacobians(self.T, live.X[idx], cam, T_body_cam)
+            R = self._sigma_px**2 * np.eye(2) + Hx @ Sigma @ np.swapaxes(Hx, 1, 2)
+            r = uv - pred
+            d2 = np.einsum("ni,nij,nj->n", r, np.linalg.inv(R), r)
+            inlier = d2 <= self.config.outlier_chi2
+            self.frontend.counters["outlier_rejected"] += int(np.sum(~inlier))
+        if self._dt > 0:
+            self._v_body = local(T_prev, self.T) / self._dt
+            self._speed_mps = float(np.linalg.norm(self._v_body[3:]))
+        return inlier
+
+    # --- keyframes ---------------------------------------------------------------------------
+    def _keyframe_observations(self, idx: np.ndarray, uv: np.ndarray) -> None:
+        """A keyframe pose variable, the motion since the last one, and this frame's inlier observations."""
+        g = self.graph
+        k = g.last_keyframe
+        if self.t_s > g.keyframe_t_s[-1]:  # else: the first frame, at the start pose's time
+            k = g.add_keyframe(self.t_s, self.T)
+            g.add_factor(odometry_factor(X(k - 1), X(k), self.U_kf, self.Q_kf))
+        cam, T_body_cam = self.rig.camera_model, self.rig.T_body_cam
+        live = self.live
+        keep = np.array([g.in_window(int(p)) for p in live.ids[idx]], dtype=bool)
+        idx, uv = idx[keep], uv[keep]
+        n = np.maximum(live.n_since_keyframe[idx], 1) if self.config.keyframe_weighting else np.ones(len(idx), dtype=np.int64)
+        sigma = self._sigma_px / np.sqrt(n)
+        for i, z, s in zip(idx, uv, sigma):
+            pid = int(live.ids[i])
+            g.add_factor(projection_factor(X(k), L(pid), z, float(s), self._K, T_body_cam, robust=self.config.robust))
+            g.observed(pid)
+        live.n_since_keyframe[idx] = 0
+        if len(idx):
+            # the points' information from this observation, the pose held fixed
+            _, _, Hx, _ = project_with_jacobians(self.T, live.X[idx], cam, T_body_cam)
+            live.info[idx] += np.swapaxes(Hx, 1, 2) @ Hx / (sigma**2)[:, None, None]
+
+    def _new_points(self, image, t_s: float, live_uv: np.ndarray) -> list[NewPoint]:
+        scans, self._scans = [s for s in self._scans if s.t_s <= t_s], [s for s in self._scans if s.t_s > t_s]
+        return self.frontend.new_points(image, t_s, self.T, scans, self.history, self.live.X, live_uv, self._speed_mps)
+
+    def _finish_keyframe(self, new: list[NewPoint], t_s: float) -> None:
+        """Add the new points, run the iSAM2 update, and take the smoothed estimates."""
+        g = self.graph
+        k = g.last_keyframe
+        c = self.config
+        if new:
+            R = self.T[:3, :3]
+            ids = np.array([p.point_id for p in new])
+            kinds = np.array([p.kind for p in new])
+            X_world = transform_points(self.T, np.array([p.p_body for p in new]))
+            Sigma_world = R @ np.array([p.Sigma_body for p in new]) @ R.T
+            for p, Xw in zip(new, X_world):
+                g.add_point(p.point_id, Xw)
+                for f in seed_factors(X(k), L(p.point_id), p.kind, p.p_body, p.Sigma_body, self.rig.camera_model, self._K, self.rig.T_body_cam, c.frontend.camera_point_sigma_px):
+                    g.add_factor(f)
+            self.live.add(ids, kinds, X_world, Sigma_world)
+            if self.log is not None:
+                self.log.add_seeds(len(self._frames), new)
+        g.update()
+        self.T = g.poses[k]
+        self.history.append(t_s, self.T)
+        in_window = np.array([g.in_window(int(p)) for p in self.live.ids], dtype=bool)
+        for i in np.flatnonzero(~in_window):
+            self._archive(int(i), "marginalized")
+        self.live.keep(in_window)
+        self.live.X = np.array([g.points[int(p)] for p in self.live.ids]).reshape(-1, 3)
+        if c.pose_covariance_from_graph:
+            self.P_kf = g.pose_covariance(k)
+        else:
+            self.P_kf = self.P_loc.copy()
+        self.T_kf = self.T.copy()
+        self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))
+        self.frames_since_kf = 0
+
+    # --- map management ----------------------------------------------------------------------
+    def _point_covariance_world(self, i: int) -> np.ndarray:
+        """Point ``i``'s covariance: its own (relative to the keyframes) plus the last keyframe
+        pose's marginal carried to it (first order)."""
+        live = self.live
+        p_body = transform_points(invert(self.T_kf), live.X[i][None])[0]
+        R = self.T_kf[:3, :3]
+        J = np.concatenate([-R @ skew(p_body), R], axis=1)
+        return np.linalg.inv(live.info[i]) + J @ self.P_kf @ J.T
+
+    def _archive(self, i: int, reason: str) -> None:
+        pid = int(self.live.ids[i])
+        track = self.frontend.drop(pid, reason)
+        self._archived.append((pid, track.kind, self._point_covariance_world(i), track.n_tracked, track.created_t_s))
+
+    def _drop_points(self) -> np.ndarray:
+        live = self.live
+        uv, reasons = self.frontend.drop_reasons(live.ids, live.X, self.T)
+        remove = np.array([r is not None for r in reasons], dtype=bool)
+        for i in np.flatnonzero(remove):
+            self._archive(int(i), reasons[i])
+        live.keep(~remove)
+        return uv[~remove]
+
+    # --- results -----------------------------------------------------------------------------
+    def smoothed_poses(self) -> np.ndarray:
+        """Every frame's pose from the latest keyframe estimates (each frame rides on the keyframe before it)."""
+        poses = self.graph.poses
+        return np.array([poses[k] @ T_rel for k, T_rel in self._frame_anchor]).reshape(-1, 4, 4)
+
+    def result(self) -> EstimatorResult:
+        res = EstimatorResult(self.name, list(self._frames))
+        pts = self.graph.points
+        for pid, kind, cov, n_tracked, created in self._archived:
+            res.points.add(pid, kind, pts[pid], cov, n_tracked, created)
+        for i, pid in enumerate(self.live.ids):
+            track = self.frontend.tracks[int(pid)]
+            res.points.add(int(pid), track.kind, self.live.X[i], self._point_covariance_world(i), track.n_tracked, track.created_t_s)
+        res.counters = self.frontend.counters.copy()
+        res.counters["keyframes"] = len(self.graph.keyframe_t_s)
+        if self.batch_result is not None:
+            return self.batch_result.apply_to(res)
+        if self._frames:
+            res.extra_poses["trajectory_smoothed"] = self.smoothed_poses()
+        return res
+
+
+__all__ = ["Isam2Config", "Isam2Options", "Isam2Slam", "LivePoints"]

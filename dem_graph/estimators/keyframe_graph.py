@@ -1,0 +1,101 @@
+"""The online graph: keyframe poses and map points in gtsam's incremental fixed-lag smoother (iSAM2).
+
+Variables are ``X(k)``, the body pose ``T_world_body`` of keyframe k, and ``L(id)``, the world
+position of point ``id`` (metres). Each variable carries a timestamp: a keyframe its time, a point
+the time of the last keyframe that observed it. Whatever is older than ``lag_s`` behind the newest
+keyframe is marginalised out (its information stays as a linear factor on what remains), so the
+cost of an update follows the window, not the length of the run.
+
+The latest estimate of every variable ever in the window is kept (:attr:`poses`, :attr:`points`):
+a marginalised variable keeps the value it had when it left.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+
+from dem_graph.errors import DemGraphError
+
+
+class KeyframeGraph:
+    def __init__(self, T_world_body_0: np.ndarray, P0: np.ndarray, t0_s: float, lag_s: float, relinearize_threshold: float = 0.01, relinearize_skip: int = 1):
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(relinearize_threshold)
+        params.relinearizeSkip = relinearize_skip
+        self.lag_s = float(lag_s)
+        self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, params)
+        self.poses: dict[int, np.ndarray] = {}  # keyframe index -> T_world_body, latest estimate
+        self.points: dict[int, np.ndarray] = {}  # point id -> X_world, latest estimate
+        self.keyframe_t_s: list[float] = []
+        self._in_window: set[int] = set()  # point ids whose variable is still in the smoother
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self._stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        self.n_factors = 0
+        k = self.add_keyframe(t0_s, T_world_body_0)
+        self.add_factor(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(np.asarray(T_world_body_0, dtype=float)), gtsam.noiseModel.Gaussian.Covariance(np.asarray(P0, dtype=float))))
+        self.update()
+
+    # --- building the next update -----------------------------------------------------------
+    @property
+    def last_keyframe(self) -> int:
+        return len(self.keyframe_t_s) - 1
+
+    def add_keyframe(self, t_s: float, T_world_body_guess: np.ndarray) -> int:
+        """A new keyframe pose variable at ``t_s``, starting from the guess; returns its index."""
+        if self.keyframe_t_s and t_s <= self.keyframe_t_s[-1]:
+            raise DemGraphError(f"keyframe times must increase: {t_s} after {self.keyframe_t_s[-1]}")
+        k = len(self.keyframe_t_s)
+        self.keyframe_t_s.append(float(t_s))
+        self._new_values.insert(X(k), gtsam.Pose3(np.asarray(T_world_body_guess, dtype=float)))
+        self._stamps.insert((X(k), float(t_s)))
+        return k
+
+    def add_point(self, point_id: int, X_world_guess: np.ndarray) -> None:
+        """A new point variable, stamped with the newest keyframe's time."""
+        self._new_values.insert(L(point_id), gtsam.Point3(*np.asarray(X_world_guess, dtype=float)))
+        self._stamps.insert((L(point_id), self.keyframe_t_s[-1]))
+        self.points[int(point_id)] = np.array(X_world_guess, dtype=float)
+        self._in_window.add(int(point_id))
+
+    def observed(self, point_id: int) -> None:
+        """Stamp a point with the newest keyframe's time (it was measured there)."""
+        self._stamps.insert((L(point_id), self.keyframe_t_s[-1]))
+
+    def add_factor(self, factor: gtsam.NonlinearFactor) -> None:
+        self._new_factors.add(factor)
+
+    def in_window(self, point_id: int) -> bool:
+        return int(point_id) in self._in_window
+
+    # --- solving ----------------------------------------------------------------------------
+    def update(self) -> None:
+        """One iSAM2 update with what was added since the last one; refreshes the estimates."""
+        self.n_factors += self._new_factors.size()
+        try:
+            self.smoother.update(self._new_factors, self._new_values, self._stamps)
+        except RuntimeError as exc:  # gtsam reports an indeterminate system or a missing key this way
+            raise DemGraphError(f"the graph update at keyframe {self.last_keyframe} (t = {self.keyframe_t_s[-1]:.3f} s) failed: {str(exc).splitlines()[0]}") from None
+        finally:
+            self._new_factors = gtsam.NonlinearFactorGraph()
+            self._new_values = gtsam.Values()
+            self._stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        values = self.smoother.calculateEstimate()
+        in_window = set()
+        for key in values.keys():
+            sym = gtsam.Symbol(key)
+            if sym.chr() == ord("x"):
+                self.poses[sym.index()] = values.atPose3(key).matrix()
+            else:
+                self.points[sym.index()] = values.atPoint3(key)
+                in_window.add(sym.index())
+        self._in_window = in_window
+
+    def pose_covariance(self, k: int) -> np.ndarray:
+        """Marginal covariance of keyframe ``k``'s pose (6x6, [rotation, translation], right perturbation)."""
+        return np.asarray(self.smoother.marginalCovariance(X(k)))
+
+
+__all__ = ["KeyframeGraph"]
