@@ -1,5 +1,5 @@
 # Two commands do everything on a fresh Debian/Ubuntu machine with Python >= 3.10:
-#   make demo   set up, simulate the default scenario (dataset + picture), run the EKF baselines on it
+#   make demo   set up, simulate the default scenario (dataset + picture), run the EKF baselines and iSAM2 on it
 #   make test   set up, then run the test suite
 PYTHON ?= python3
 VENV ?= .venv
@@ -12,6 +12,7 @@ demo: setup
 	$(BIN)/dem-graph simulate --scenario demo --out $(OUT)/demo/dataset --overwrite
 	$(BIN)/dem-graph run $(OUT)/demo/dataset --estimator gm --out $(OUT)/demo/run_gm
 	$(BIN)/dem-graph run $(OUT)/demo/dataset --estimator ptpm --out $(OUT)/demo/run_ptpm
+	$(BIN)/dem-graph run $(OUT)/demo/dataset --estimator isam2 --out $(OUT)/demo/run_isam2
 
 test: setup
 	$(BIN)/python -m pytest -q

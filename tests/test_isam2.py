@@ -200,3 +200,25 @@ def test_batch_smooths_every_observation(smoke_log, isam2_run):
     assert m["trajectory"]["drift_percent"] < 1.0
     # the online pass is kept next to it
     assert m["trajectory_online"]["ate_rmse_m"] == pytest.approx(isam2_run.metrics["trajectory"]["ate_rmse_m"], rel=1e-9)
+
+
+def test_a_failed_graph_update_restarts_the_smoother(smoke_log, monkeypatch):
+    """gtsam refusing an update (as for an indeterminate system) at one keyframe: the estimator
+    logs it, starts a new smoother from its current estimates and goes on to the goals above."""
+    from dem_graph.estimators import keyframe_graph
+
+    real = keyframe_graph.KeyframeGraph.update
+    calls = {"n": 0}
+
+    def failing_once(self):
+        calls["n"] += 1
+        if calls["n"] == 8:
+            self._new_factors = keyframe_graph.gtsam.NonlinearFactorGraph()
+            raise keyframe_graph.GraphUpdateError("the graph update at keyframe 7 failed: Indeterminant linear system")
+        return real(self)
+
+    monkeypatch.setattr(keyframe_graph.KeyframeGraph, "update", failing_once)
+    run = _run(smoke_log)
+    assert run.error is None and run.metrics["frames"] == 65
+    assert run.metrics["events"]["graph_restarts"] == 1
+    assert run.metrics["trajectory"]["drift_percent"] < 1.0

@@ -3,7 +3,8 @@
 The online pass (:class:`~dem_graph.estimators.isam2.Isam2Slam` with ``batch: true``) does the data
 association and records every measurement it used (:class:`MeasurementLog`). Here one graph holds
 them all: a pose per frame, the motion between consecutive frames, a projection factor for every
-inlier observation of every frame, and each point's seed factors. Levenberg-Marquardt starts from the
+inlier observation of every frame, each point's seed factors, and the links between the landmarks
+of one track (a patch refresh starts a new one). Levenberg-Marquardt starts from the
 online pass's smoothed estimates.
 
 Pose variables: ``X(0)`` is the start pose (with the run's prior), ``X(f + 1)`` frame ``f``'s.
@@ -31,7 +32,7 @@ log = logging.getLogger(__name__)
 @dataclass
 class BatchResult:
     poses: np.ndarray  # (n_frames, 4, 4) T_world_body of every frame
-    points: dict[int, np.ndarray]  # point id -> X_world
+    points: dict[int, np.ndarray]  # landmark -> X_world
     iterations: int
     error_initial: float
     error_final: float
@@ -39,12 +40,12 @@ class BatchResult:
     optimize_s: float
     n_factors: int
 
-    def apply_to(self, res: EstimatorResult) -> EstimatorResult:
+    def apply_to(self, res: EstimatorResult, landmark_of: dict[int, int]) -> EstimatorResult:
         """The online result with the smoothed poses and points (the online poses kept as ``trajectory_online``)."""
         online = np.array([f.T_world_body for f in res.frames])
         res.frames = [replace(f, T_world_body=self.poses[i]) for i, f in enumerate(res.frames)]
         res.extra_poses["trajectory_online"] = online
-        res.points.xyz = [self.points.get(pid, xyz) for pid, xyz in zip(res.points.point_id, res.points.xyz)]
+        res.points.xyz = [self.points.get(landmark_of.get(pid, -1), xyz) for pid, xyz in zip(res.points.point_id, res.points.xyz)]
         res.counters["batch_iterations"] = self.iterations
         res.counters["batch_factors"] = self.n_factors
         return res
@@ -57,12 +58,14 @@ def build_graph(mlog: MeasurementLog, rig: SensorRig, T0: np.ndarray, P0: np.nda
     graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(np.asarray(T0, dtype=float)), gtsam.noiseModel.Gaussian.Covariance(np.asarray(P0, dtype=float))))
     for f in range(mlog.n_frames):
         graph.add(odometry_factor(X(f), X(f + 1), mlog.T_prev_curr[f], mlog.motion_covariance[f]))
-    for f, seed in zip(mlog.seed_frame, mlog.seeds):
-        for factor in seed_factors(X(f + 1), L(seed.point_id), seed.kind, seed.p_body, seed.Sigma_body, rig.camera_model, K, T_body_cam, sigma_seed_px):
+    for before, after, sigma_m in mlog.links:
+        graph.add(gtsam.BetweenFactorPoint3(L(before), L(after), gtsam.Point3(0.0, 0.0, 0.0), gtsam.noiseModel.Isotropic.Sigma(3, sigma_m)))
+    for f, lm, seed in zip(mlog.seed_frame, mlog.seed_landmark, mlog.seeds):
+        for factor in seed_factors(X(f + 1), L(lm), seed.kind, seed.p_body, seed.Sigma_body, rig.camera_model, K, T_body_cam, sigma_seed_px):
             graph.add(factor)
-    frames, points, uv = mlog.observations()
-    for f, pid, z in zip(frames.tolist(), points.tolist(), uv):
-        graph.add(projection_factor(X(f + 1), L(pid), z, sigma_px, K, T_body_cam, robust=robust))
+    frames, landmarks, uv = mlog.observations()
+    for f, lm, z in zip(frames.tolist(), landmarks.tolist(), uv):
+        graph.add(projection_factor(X(f + 1), L(lm), z, sigma_px, K, T_body_cam, robust=robust))
     return graph
 
 
@@ -75,6 +78,7 @@ def smooth_batch(
     points_init: dict[int, np.ndarray],
     sigma_px: float,
     sigma_seed_px: float,
+    landmark_of: dict[int, int],
     robust: bool = True,
     max_iterations: int = 30,
     relative_error_tol: float = 1e-5,
@@ -86,9 +90,9 @@ def smooth_batch(
     values.insert(X(0), gtsam.Pose3(np.asarray(T0, dtype=float)))
     for f in range(mlog.n_frames):
         values.insert(X(f + 1), gtsam.Pose3(poses_init[f]))
-    seeded = {s.point_id for s in mlog.seeds}
-    for pid in seeded:
-        values.insert(L(pid), gtsam.Point3(*points_init[pid]))
+    landmarks = set(mlog.seed_landmark) | {after for _, after, _ in mlog.links}
+    for lm in landmarks:
+        values.insert(L(lm), gtsam.Point3(*points_init[lm]))
     t1 = time.perf_counter()
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
@@ -102,7 +106,7 @@ def smooth_batch(
     t2 = time.perf_counter()
     result = BatchResult(
         poses=np.array([out.atPose3(X(f + 1)).matrix() for f in range(mlog.n_frames)]),
-        points={pid: out.atPoint3(L(pid)) for pid in seeded},
+        points={lm: out.atPoint3(L(lm)) for lm in landmarks},
         iterations=optimizer.iterations(),
         error_initial=float(error_initial),
         error_final=float(graph.error(out)),

@@ -1,11 +1,9 @@
 """Factor builders for the iSAM2 estimator, all of them gtsam's own (C++) factors.
 
-- :func:`point_in_frame_factor` ties a point to a pose by a measurement of the point in that pose's
-  frame with a full 3x3 covariance. It is a ``BearingRangeFactor3D`` whose Gaussian noise is the
-  covariance carried into (bearing, range) coordinates, so no Python factor runs in the solver.
-  It is the laser factor: the point in the laser frame at the scan's time (the beam direction, and
-  the range with the range noise), or in the body frame through Eq. 2. Its covariance must be small
-  enough for the factor to be linear over it; a laser return's is.
+- :func:`point_in_frame_factors` ties a point to a pose by a measurement of the point in that
+  pose's frame with a full 3x3 covariance: a projection and a range factor from a virtual sensor on
+  the covariance's major axis, so no Python factor runs in the solver. It is the laser factor: the
+  point in the body frame through Eq. 2, with the range noise along the beam.
 - :func:`range_factor` measures a point's distance from a sensor on the body. A new camera point
   gets it with the flat-ground depth uncertainty, plus the projection factor of the pixel it was
   seeded at: together they are the EKF's seed covariance (about 0.5 m of height along the ray,
@@ -32,29 +30,40 @@ from dem_graph.geometry.se3 import invert
 HUBER_K = 1.345  # 95 % efficiency on Gaussian residuals
 
 
-def _bearing_range_jacobian(p: np.ndarray) -> np.ndarray:
-    """d(bearing error, range error)/d(point) at point ``p`` seen from the identity pose (3x3)."""
-    probe = gtsam.BearingRangeFactor3D(0, 1, gtsam.Unit3(p), float(np.linalg.norm(p)), gtsam.noiseModel.Unit.Create(3))
-    values = gtsam.Values()
-    values.insert(0, gtsam.Pose3())
-    values.insert(1, gtsam.Point3(*p))
-    return probe.linearize(values).jacobian()[0][:, 6:9]  # [pose (6) | point (3)], unit noise: unwhitened
+VIRTUAL_RANGE_M = 1.0  # distance of the virtual sensor from a point-in-frame measurement, metres
 
 
-def point_in_frame_factor(pose_key: int, point_key: int, p_frame: np.ndarray, Sigma_frame: np.ndarray) -> gtsam.NonlinearFactor:
+def point_in_frame_factors(pose_key: int, point_key: int, p_frame: np.ndarray, Sigma_frame: np.ndarray) -> list[gtsam.NonlinearFactor]:
     """The point ``point_key`` measured at ``p_frame`` (metres) in the frame of pose ``pose_key``,
-    with covariance ``Sigma_frame`` (3x3, m^2)."""
-    p = np.asarray(p_frame, dtype=float).reshape(3)
+    with covariance ``Sigma_frame`` (3x3, m^2), as two of gtsam's C++ factors.
+
+    A virtual sensor sits ``VIRTUAL_RANGE_M`` behind the point on the covariance's major axis,
+    looking along it: a projection factor (unit focal length) carries the two minor axes' sigmas,
+    and a range factor from the same sensor the major axis's. To first order their summed cost is
+    ``d^T Sigma^-1 d / 2`` for a displacement ``d`` of the point, and it stays smooth however the
+    point moves (a bearing factor's tangent basis switches axes, making its cost jump).
+    """
+    p = np.asarray(p_frame, dtype=float).reshape(-1)
     Sigma = np.asarray(Sigma_frame, dtype=float)
-    r = float(np.linalg.norm(p))
-    if not np.all(np.isfinite(p)) or r < 1e-6:
-        raise ValueError(f"a point-in-frame measurement needs a finite point away from the origin, got {p}")
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"a point-in-frame measurement needs a finite 3D point, got {p_frame}")
     if Sigma.shape != (3, 3) or not np.all(np.isfinite(Sigma)):
         raise ValueError(f"Sigma_frame must be a finite 3x3 matrix, got shape {Sigma.shape}")
-    J = _bearing_range_jacobian(p)
-    cov = J @ Sigma @ J.T
-    noise = gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
-    return gtsam.BearingRangeFactor3D(pose_key, point_key, gtsam.Unit3(p), r, noise)
+    lam, V = np.linalg.eigh(0.5 * (Sigma + Sigma.T))  # ascending
+    if lam[0] <= 0:
+        raise ValueError(f"Sigma_frame must be positive definite, got eigenvalues {lam}")
+    z, x = V[:, 2], V[:, 0]
+    R_frame_sensor = np.column_stack([x, np.cross(z, x), z])
+    T_frame_sensor = np.eye(4)
+    T_frame_sensor[:3, :3] = R_frame_sensor
+    T_frame_sensor[:3, 3] = p - VIRTUAL_RANGE_M * z
+    sensor = gtsam.Pose3(T_frame_sensor)
+    K = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
+    across = gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(lam[:2]) / VIRTUAL_RANGE_M)
+    return [
+        gtsam.GenericProjectionFactorCal3_S2(gtsam.Point2(0.0, 0.0), across, pose_key, point_key, K, sensor),
+        gtsam.RangeFactorWithTransform3D(pose_key, point_key, VIRTUAL_RANGE_M, gtsam.noiseModel.Isotropic.Sigma(1, float(np.sqrt(lam[2]))), sensor),
+    ]
 
 
 def range_factor(pose_key: int, point_key: int, range_m: float, sigma_m: float, T_body_sensor: np.ndarray) -> gtsam.NonlinearFactor:
@@ -103,7 +112,7 @@ def seed_factors(
     """
     p = np.asarray(p_body, dtype=float).reshape(3)
     if kind == LASER:
-        return [point_in_frame_factor(pose_key, point_key, p, Sigma_body)]
+        return point_in_frame_factors(pose_key, point_key, p, Sigma_body)
     ray = p - np.asarray(T_body_cam)[:3, 3]
     range_m = float(np.linalg.norm(ray))
     r = ray / range_m

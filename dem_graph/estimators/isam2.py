@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import time
 
+import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 from pydantic import Field
@@ -35,7 +36,7 @@ from dem_graph.config_types import StrictModel
 from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
 from dem_graph.estimators.base import Estimator, EstimatorResult, FrameRecord
 from dem_graph.estimators.graph_factors import calibration, odometry_factor, projection_factor, seed_factors
-from dem_graph.estimators.keyframe_graph import KeyframeGraph
+from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
 from dem_graph.estimators.measurement_log import MeasurementLog
 from dem_graph.estimators.odometry import OdometryIntegrator
 from dem_graph.estimators.pose_update import project_with_jacobians, update_pose
@@ -60,6 +61,9 @@ class Isam2Options(StrictModel):
     keyframe_weighting: bool = Field(
         True, description="a keyframe observation carries the information of the frames that tracked the point since its last keyframe observation (sigma_px / sqrt(n))"
     )
+    split_link_sigma_m: float = Field(
+        0.005, gt=0, description="a patch refresh starts a new landmark, tied to the old one with this sigma (the ground point under the new patch is a few mm away), metres"
+    )
     robust: bool = Field(True, description="Huber kernel on projection factors and per-frame pixels")
     outlier_chi2: float = Field(9.21, gt=0, description="an observation whose normalised residual after the frame's pose update exceeds this (chi-square, 2 dof; 9.21 = 99 %) stays out of the graph")
     pose_covariance_from_graph: bool = Field(True, description="each keyframe's pose covariance from the smoother's marginal (about 2-5 ms a keyframe)")
@@ -75,10 +79,13 @@ class Isam2Config(SharedSettings, Isam2Options):
 
 class LivePoints:
     """The points being tracked: ids, kinds, world positions and each one's 3x3 information
-    (its seed's plus its keyframe observations', poses held fixed)."""
+    (its seed's plus its keyframe observations', poses held fixed); the graph landmark each one
+    follows now and the patch segment it belongs to."""
 
     def __init__(self):
         self.ids = np.zeros(0, dtype=np.int64)
+        self.landmark = np.zeros(0, dtype=np.int64)
+        self.segment = np.zeros(0, dtype=np.int64)
         self.kinds = np.zeros(0, dtype=np.int8)
         self.X = np.zeros((0, 3))
         self.info = np.zeros((0, 3, 3))
@@ -87,8 +94,10 @@ class LivePoints:
     def __len__(self) -> int:
         return len(self.ids)
 
-    def add(self, ids, kinds, X_world, Sigma_world) -> None:
+    def add(self, ids, landmarks, kinds, X_world, Sigma_world) -> None:
         self.ids = np.concatenate([self.ids, np.asarray(ids, dtype=np.int64)])
+        self.landmark = np.concatenate([self.landmark, np.asarray(landmarks, dtype=np.int64)])
+        self.segment = np.concatenate([self.segment, np.zeros(len(ids), dtype=np.int64)])
         self.kinds = np.concatenate([self.kinds, np.asarray(kinds, dtype=np.int8)])
         self.X = np.concatenate([self.X, np.asarray(X_world, dtype=float).reshape(-1, 3)])
         self.info = np.concatenate([self.info, np.linalg.inv(np.asarray(Sigma_world, dtype=float).reshape(-1, 3, 3))])
@@ -96,6 +105,7 @@ class LivePoints:
 
     def keep(self, mask: np.ndarray) -> None:
         self.ids, self.kinds, self.X, self.info = self.ids[mask], self.kinds[mask], self.X[mask], self.info[mask]
+        self.landmark, self.segment = self.landmark[mask], self.segment[mask]
         self.n_since_keyframe = self.n_since_keyframe[mask]
 
     def covariances(self) -> np.ndarray:
@@ -121,9 +131,13 @@ class Isam2Slam(Estimator):
         self._T0, self._P0 = self.T.copy(), P0
         self.P_loc = P0.copy()  # pose covariance relative to the map (search regions)
         self.graph = KeyframeGraph(self.T, P0, self.t_s, c.lag_s, c.relinearize_threshold, c.relinearize_skip)
-        self.P_kf = P0.copy()  # marginal covariance of the last keyframe's pose
         self.T_kf = self.T.copy()  # the last keyframe's pose, smoothed when it was made
         self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))  # motion since the last keyframe
+        # the output covariance rides on the latest keyframe whose marginal is known (it is
+        # computed one frame after its keyframe, to spread the work): its pose, its marginal and the
+        # motion covariance since
+        self._anchor_T, self._anchor_P, self._anchor_Q = self.T.copy(), P0.copy(), np.zeros((6, 6))
+        self._marginal_due: int | None = None
         self.frames_since_kf = 0
         self.live = LivePoints()
         self.history = PoseHistory(window=c.keyframe_every + 5)
@@ -139,6 +153,9 @@ class Isam2Slam(Estimator):
         self._archived: list[tuple[int, int, np.ndarray, int, float]] = []  # id, kind, covariance, n_tracked, created
         self._false_matches = FalseMatches(c.false_matches, self.frontend.counters)
         self.log = MeasurementLog() if c.batch else None
+        self._next_landmark = 0  # graph variable L(j): one per patch segment of a point
+        self._landmark_of: dict[int, int] = {}  # point id -> its current landmark
+        self._pending_links: list[tuple[int, int, np.ndarray]] = []  # (old, new landmark, old covariance)
         self.batch_result = None
 
     # --- events ------------------------------------------------------------------------------
@@ -167,6 +184,7 @@ class Isam2Slam(Estimator):
             c = self.config
             self.batch_result = smooth_batch(
                 self.log, self.rig, self._T0, self._P0, self.smoothed_poses(), self.graph.points, self._sigma_px, c.frontend.camera_point_sigma_px,
+                self._landmark_of,
                 robust=c.robust, max_iterations=c.batch_max_iterations, relative_error_tol=c.batch_relative_error_tol,
             )
 
@@ -182,9 +200,15 @@ class Isam2Slam(Estimator):
         inlier = self._update_pose(T_pred, idx, uv)
         t3 = time.perf_counter()
         timing["prediction"], timing["tracking"], timing["update"] = t1 - t0, t2 - t1, t3 - t2
+        split_old = self._split_refreshed(idx)
         self.live.n_since_keyframe[idx[inlier]] += 1
         if self.log is not None:
-            self.log.add_frame(event.t_s, self._U_frame, self._Q_frame, self.live.ids[idx[inlier]], uv[inlier])
+            # a refreshed point's match is an observation of the landmark before (matched with the
+            # old patch) and defines the one after
+            old = split_old[inlier]
+            both = old >= 0
+            landmarks = np.concatenate([self.live.landmark[idx[inlier]], old[both]])
+            self.log.add_frame(event.t_s, self._U_frame, self._Q_frame, landmarks, np.concatenate([uv[inlier], uv[inlier][both]]))
         self.frames_since_kf += 1
         is_keyframe = self.frames_since_kf >= self.config.keyframe_every or len(self.live) < self.config.keyframe_min_live_fraction * self.config.frontend.max_points
         graph_s = 0.0
@@ -203,14 +227,15 @@ class Isam2Slam(Estimator):
             self._finish_keyframe(new, event.t_s)
             graph_s += time.perf_counter() - tn
             map_s += tn - tg
+        elif self._marginal_due is not None:
+            tg = time.perf_counter()
+            self._take_marginal(self._marginal_due)
+            graph_s += time.perf_counter() - tg
         timing["map"], timing["graph"] = map_s, graph_s
         timing["total"] = time.perf_counter() - t0
         k = self.graph.last_keyframe
-        T_rel = invert(self.T_kf) @ self.T
-        self._frame_anchor.append((k, T_rel))
-        A = adjoint(invert(T_rel))
-        P_out = A @ self.P_kf @ A.T + self.Q_kf
-        record = FrameRecord(event.t_s, self.T.copy(), 0.5 * (P_out + P_out.T), len(self.live), int(len(idx)), timing)
+        self._frame_anchor.append((k, invert(self.T_kf) @ self.T))
+        record = FrameRecord(event.t_s, self.T.copy(), self._output_covariance(), len(self.live), int(len(idx)), timing)
         self._frames.append(record)
         return record
 
@@ -231,6 +256,7 @@ class Isam2Slam(Estimator):
         self.P_loc = A @ self.P_loc @ A.T + Q
         self.U_kf = self.U_kf @ U
         self.Q_kf = A @ self.Q_kf @ A.T + Q
+        self._anchor_Q = A @ self._anchor_Q @ A.T + Q
         self._U_frame, self._Q_frame = U, Q
         self._dt = dt
         self.t_s = t_s
@@ -245,7 +271,8 @@ class Isam2Slam(Estimator):
         fe = self.frontend
         cam, T_body_cam = self.rig.camera_model, self.rig.T_body_cam
         uv, Hp, Hx, in_front = project_with_jacobians(T_pred, live.X, cam, T_body_cam)
-        S = Hp @ self.P_loc @ np.swapaxes(Hp, 1, 2) + Hx @ live.covariances() @ np.swapaxes(Hx, 1, 2) + self._sigma_px**2 * np.eye(2)
+        self._Sigma = live.covariances()  # this frame's, also for the pose update
+        S = Hp @ self.P_loc @ np.swapaxes(Hp, 1, 2) + Hx @ self._Sigma @ np.swapaxes(Hx, 1, 2) + self._sigma_px**2 * np.eye(2)
         T_wc = T_pred @ T_body_cam
         warps = fe.template_warps(live.ids, live.X, T_wc)
         idx, found_uv = [], []
@@ -270,7 +297,7 @@ class Isam2Slam(Estimator):
             self.T = T_pred
             inlier = np.zeros(0, dtype=bool)
         else:
-            Sigma = live.covariances()[idx]
+            Sigma = self._Sigma[idx]
             cam, T_body_cam = self.rig.camera_model, self.rig.T_body_cam
             self.T, self.P_loc = update_pose(T_pred, self.P_loc, live.X[idx], Sigma, uv, cam, T_body_cam, self._sigma_px, robust=self.config.robust)
             pred, _, Hx, _ = project_with_jacobians(self.T, live.X[idx], cam, T_body_cam)
@@ -284,6 +311,44 @@ class Isam2Slam(Estimator):
             self._speed_mps = float(np.linalg.norm(self._v_body[3:]))
         return inlier
 
+    def _split_refreshed(self, idx: np.ndarray) -> np.ndarray:
+        """Points whose patch was refreshed in this frame now follow a new landmark (tied to the
+        old one at the next keyframe); returns, per match, the old landmark or -1."""
+        live, tracks = self.live, self.frontend.tracks
+        old = np.full(len(idx), -1, dtype=np.int64)
+        sigma2 = self.config.split_link_sigma_m**2
+        for j, i in enumerate(idx):
+            segment = tracks[int(live.ids[i])].segment
+            if segment == live.segment[i]:
+                continue
+            old[j] = live.landmark[i]
+            new = self._next_landmark
+            self._next_landmark += 1
+            Sigma_old = np.linalg.inv(live.info[i])
+            self._pending_links.append((int(old[j]), new, Sigma_old))
+            self.graph.points[new] = self.graph.points[int(old[j])].copy()  # its estimate until the graph has it
+            live.landmark[i], live.segment[i] = new, segment
+            live.info[i] = np.linalg.inv(Sigma_old + sigma2 * np.eye(3))
+            live.n_since_keyframe[i] = 0
+            self._landmark_of[int(live.ids[i])] = new
+            if self.log is not None:
+                self.log.add_link(int(old[j]), new, self.config.split_link_sigma_m)
+        return old
+
+    def _add_pending_links(self) -> None:
+        """New landmarks for the refreshed patches since the last keyframe, each tied to the one
+        before it (or, if that has left the window, held by a prior at its last estimate)."""
+        g = self.graph
+        sigma = self.config.split_link_sigma_m
+        for old, new, Sigma_old in self._pending_links:
+            X_old = g.points[old]
+            g.add_point(new, X_old)
+            if g.in_window(old):
+                g.add_factor(gtsam.BetweenFactorPoint3(L(old), L(new), gtsam.Point3(0.0, 0.0, 0.0), gtsam.noiseModel.Isotropic.Sigma(3, sigma)))
+            else:
+                g.add_factor(gtsam.PriorFactorPoint3(L(new), gtsam.Point3(*X_old), gtsam.noiseModel.Gaussian.Covariance(Sigma_old + sigma**2 * np.eye(3))))
+        self._pending_links = []
+
     # --- keyframes ---------------------------------------------------------------------------
     def _keyframe_observations(self, idx: np.ndarray, uv: np.ndarray) -> None:
         """A keyframe pose variable, the motion since the last one, and this frame's inlier observations."""
@@ -294,14 +359,15 @@ class Isam2Slam(Estimator):
             g.add_factor(odometry_factor(X(k - 1), X(k), self.U_kf, self.Q_kf))
         cam, T_body_cam = self.rig.camera_model, self.rig.T_body_cam
         live = self.live
-        keep = np.array([g.in_window(int(p)) for p in live.ids[idx]], dtype=bool)
+        self._add_pending_links()
+        keep = np.array([g.in_window(int(lm)) for lm in live.landmark[idx]], dtype=bool)
         idx, uv = idx[keep], uv[keep]
         n = np.maximum(live.n_since_keyframe[idx], 1) if self.config.keyframe_weighting else np.ones(len(idx), dtype=np.int64)
         sigma = self._sigma_px / np.sqrt(n)
         for i, z, s in zip(idx, uv, sigma):
-            pid = int(live.ids[i])
-            g.add_factor(projection_factor(X(k), L(pid), z, float(s), self._K, T_body_cam, robust=self.config.robust))
-            g.observed(pid)
+            lm = int(live.landmark[i])
+            g.add_factor(projection_factor(X(k), L(lm), z, float(s), self._K, T_body_cam, robust=self.config.robust))
+            g.observed(lm)
         live.n_since_keyframe[idx] = 0
         if len(idx):
             # the points' information from this observation, the pose held fixed
@@ -323,38 +389,67 @@ class Isam2Slam(Estimator):
             kinds = np.array([p.kind for p in new])
             X_world = transform_points(self.T, np.array([p.p_body for p in new]))
             Sigma_world = R @ np.array([p.Sigma_body for p in new]) @ R.T
-            for p, Xw in zip(new, X_world):
-                g.add_point(p.point_id, Xw)
-                for f in seed_factors(X(k), L(p.point_id), p.kind, p.p_body, p.Sigma_body, self.rig.camera_model, self._K, self.rig.T_body_cam, c.frontend.camera_point_sigma_px):
+            landmarks = np.arange(self._next_landmark, self._next_landmark + len(new))
+            self._next_landmark += len(new)
+            for p, lm, Xw in zip(new, landmarks, X_world):
+                g.add_point(int(lm), Xw)
+                self._landmark_of[p.point_id] = int(lm)
+                for f in seed_factors(X(k), L(int(lm)), p.kind, p.p_body, p.Sigma_body, self.rig.camera_model, self._K, self.rig.T_body_cam, c.frontend.camera_point_sigma_px):
                     g.add_factor(f)
-            self.live.add(ids, kinds, X_world, Sigma_world)
+            self.live.add(ids, landmarks, kinds, X_world, Sigma_world)
             if self.log is not None:
-                self.log.add_seeds(len(self._frames), new)
-        g.update()
+                self.log.add_seeds(len(self._frames), new, landmarks)
+        try:
+            g.update()
+        except GraphUpdateError as exc:
+            # start over from the current estimates (this keyframe's new factors are lost); a second
+            # failure ends the run with what was computed
+            log.warning("%s; restarting the smoother from the current estimates", exc)
+            self.frontend.counters["graph_restarts"] += 1
+            live = self.live
+            g.restart(self.T, self._output_covariance(), {int(lm): (live.X[i], self._point_covariance_world(i)) for i, lm in enumerate(live.landmark)})
+            self._pending_links = []
         self.T = g.poses[k]
         self.history.append(t_s, self.T)
-        in_window = np.array([g.in_window(int(p)) for p in self.live.ids], dtype=bool)
+        in_window = np.array([g.in_window(int(lm)) for lm in self.live.landmark], dtype=bool)
         for i in np.flatnonzero(~in_window):
             self._archive(int(i), "marginalized")
         self.live.keep(in_window)
-        self.live.X = np.array([g.points[int(p)] for p in self.live.ids]).reshape(-1, 3)
+        self.live.X = np.array([g.points[int(lm)] for lm in self.live.landmark]).reshape(-1, 3)
         if c.pose_covariance_from_graph:
-            self.P_kf = g.pose_covariance(k)
+            back_to_back = self._marginal_due is not None  # no frame in between to spread the work to
+            self._marginal_due = k
+            if back_to_back:
+                self._take_marginal(k)
         else:
-            self.P_kf = self.P_loc.copy()
+            self._anchor_T, self._anchor_P, self._anchor_Q = self.T.copy(), self.P_loc.copy(), np.zeros((6, 6))
         self.T_kf = self.T.copy()
         self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))
         self.frames_since_kf = 0
+
+    def _output_covariance(self) -> np.ndarray:
+        """The current pose's covariance: the anchor keyframe's marginal carried to it, plus the
+        motion covariance since (6x6, right perturbation)."""
+        A = adjoint(invert(invert(self._anchor_T) @ self.T))
+        P = A @ self._anchor_P @ A.T + self._anchor_Q
+        return 0.5 * (P + P.T)
+
+    def _take_marginal(self, k: int) -> None:
+        """Keyframe ``k``'s marginal pose covariance from the smoother becomes the output's anchor."""
+        self._marginal_due = None
+        g = self.graph
+        self._anchor_T, self._anchor_P = g.poses[k].copy(), g.pose_covariance(k)
+        self._anchor_Q = self.Q_kf.copy() if k == g.last_keyframe else np.zeros((6, 6))
 
     # --- map management ----------------------------------------------------------------------
     def _point_covariance_world(self, i: int) -> np.ndarray:
         """Point ``i``'s covariance: its own (relative to the keyframes) plus the last keyframe
         pose's marginal carried to it (first order)."""
         live = self.live
-        p_body = transform_points(invert(self.T_kf), live.X[i][None])[0]
-        R = self.T_kf[:3, :3]
+        p_body = transform_points(invert(self._anchor_T), live.X[i][None])[0]
+        R = self._anchor_T[:3, :3]
         J = np.concatenate([-R @ skew(p_body), R], axis=1)
-        return np.linalg.inv(live.info[i]) + J @ self.P_kf @ J.T
+        return np.linalg.inv(live.info[i]) + J @ self._anchor_P @ J.T
 
     def _archive(self, i: int, reason: str) -> None:
         pid = int(self.live.ids[i])
@@ -380,14 +475,14 @@ class Isam2Slam(Estimator):
         res = EstimatorResult(self.name, list(self._frames))
         pts = self.graph.points
         for pid, kind, cov, n_tracked, created in self._archived:
-            res.points.add(pid, kind, pts[pid], cov, n_tracked, created)
+            res.points.add(pid, kind, pts[self._landmark_of[pid]], cov, n_tracked, created)
         for i, pid in enumerate(self.live.ids):
             track = self.frontend.tracks[int(pid)]
             res.points.add(int(pid), track.kind, self.live.X[i], self._point_covariance_world(i), track.n_tracked, track.created_t_s)
         res.counters = self.frontend.counters.copy()
         res.counters["keyframes"] = len(self.graph.keyframe_t_s)
         if self.batch_result is not None:
-            return self.batch_result.apply_to(res)
+            return self.batch_result.apply_to(res, self._landmark_of)
         if self._frames:
             res.extra_poses["trajectory_smoothed"] = self.smoothed_poses()
         return res

@@ -19,13 +19,18 @@ from gtsam.symbol_shorthand import L, X
 from dem_graph.errors import DemGraphError
 
 
+class GraphUpdateError(DemGraphError):
+    """An iSAM2 update failed (an indeterminate system, say); the smoother's state is unusable."""
+
+
 class KeyframeGraph:
     def __init__(self, T_world_body_0: np.ndarray, P0: np.ndarray, t0_s: float, lag_s: float, relinearize_threshold: float = 0.01, relinearize_skip: int = 1):
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(relinearize_threshold)
-        params.relinearizeSkip = relinearize_skip
+        self._params = gtsam.ISAM2Params()
+        self._params.setRelinearizeThreshold(relinearize_threshold)
+        self._params.relinearizeSkip = relinearize_skip
         self.lag_s = float(lag_s)
-        self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, params)
+        self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, self._params)
+        self.restarts = 0
         self.poses: dict[int, np.ndarray] = {}  # keyframe index -> T_world_body, latest estimate
         self.points: dict[int, np.ndarray] = {}  # point id -> X_world, latest estimate
         self.keyframe_t_s: list[float] = []
@@ -77,7 +82,8 @@ class KeyframeGraph:
         try:
             self.smoother.update(self._new_factors, self._new_values, self._stamps)
         except RuntimeError as exc:  # gtsam reports an indeterminate system or a missing key this way
-            raise DemGraphError(f"the graph update at keyframe {self.last_keyframe} (t = {self.keyframe_t_s[-1]:.3f} s) failed: {str(exc).splitlines()[0]}") from None
+            text = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise GraphUpdateError(f"the graph update at keyframe {self.last_keyframe} (t = {self.keyframe_t_s[-1]:.3f} s) failed: {text}") from None
         finally:
             self._new_factors = gtsam.NonlinearFactorGraph()
             self._new_values = gtsam.Values()
@@ -93,9 +99,28 @@ class KeyframeGraph:
                 in_window.add(sym.index())
         self._in_window = in_window
 
+    def restart(self, T_world_body: np.ndarray, P: np.ndarray, point_priors: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
+        """Start a new smoother from the newest keyframe after a failed update: its pose and the
+        given points (landmark -> (X_world, 3x3 covariance)) enter with priors at their estimates;
+        what the failed update held is dropped. Keyframe numbering and kept estimates continue."""
+        self.restarts += 1
+        self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, self._params)
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self._stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        k, t_s = self.last_keyframe, self.keyframe_t_s[-1]
+        T = gtsam.Pose3(np.asarray(T_world_body, dtype=float))
+        self._new_values.insert(X(k), T)
+        self._stamps.insert((X(k), t_s))
+        self.add_factor(gtsam.PriorFactorPose3(X(k), T, gtsam.noiseModel.Gaussian.Covariance(np.asarray(P, dtype=float))))
+        for lm, (X_world, Sigma) in point_priors.items():
+            self.add_point(lm, X_world)
+            self.add_factor(gtsam.PriorFactorPoint3(L(lm), gtsam.Point3(*X_world), gtsam.noiseModel.Gaussian.Covariance(np.asarray(Sigma, dtype=float))))
+        self.update()
+
     def pose_covariance(self, k: int) -> np.ndarray:
         """Marginal covariance of keyframe ``k``'s pose (6x6, [rotation, translation], right perturbation)."""
         return np.asarray(self.smoother.marginalCovariance(X(k)))
 
 
-__all__ = ["KeyframeGraph"]
+__all__ = ["GraphUpdateError", "KeyframeGraph"]

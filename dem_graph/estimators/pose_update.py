@@ -72,7 +72,7 @@ def update_pose(
         g = -P0_inv @ xi0 + np.einsum("nij,nj->i", HtW, r)
         dx = np.linalg.solve(info, g)
         T = retract(T, dx)
-        if np.max(np.abs(dx)) < 1e-10:
+        if np.max(np.abs(dx)) < 1e-8:  # radians and metres: far below any pixel
             break
     P = np.linalg.inv(info)
     return T, 0.5 * (P + P.T)

@@ -1,6 +1,8 @@
 """Estimator benchmark: time per frame against the number of live points (the paper's Fig. 12).
 
 The log is simulated once and held in memory, so only the estimator (tracking included) is timed.
+With 1550 frames or more, each row also gives the median time per frame around frame 1500 over
+the median around frame 150 (100 frames each): a cost that grows with the run shows there.
 """
 
 from __future__ import annotations
@@ -26,9 +28,11 @@ class BenchRow:
     frame: TimingStats
     tracking: TimingStats
     update: TimingStats
+    graph: TimingStats
     live_points_median: float
     tracked_points_median: float
     drift_percent: float
+    late_over_early: float = float("nan")  # median ms around frame 1500 / around frame 150
 
     @property
     def frames_per_s(self) -> float:
@@ -49,10 +53,17 @@ class EstimatorBenchResult:
 
     def table(self) -> str:
         rows = [
-            [r.estimator, r.max_points, f"{r.live_points_median:.0f}", f"{r.tracked_points_median:.0f}", f"{r.frame.median_ms:.1f}", f"{r.frame.p95_ms:.1f}", f"{r.tracking.median_ms:.1f}", f"{r.update.median_ms:.1f}", f"{r.frames_per_s:.1f}", f"{r.points_per_s:.0f}", f"{r.drift_percent:.2f}"]
+            [
+                r.estimator, r.max_points, f"{r.live_points_median:.0f}", f"{r.tracked_points_median:.0f}", f"{r.frame.median_ms:.1f}", f"{r.frame.p95_ms:.1f}",
+                f"{r.tracking.median_ms:.1f}", f"{r.update.median_ms:.1f}", f"{r.graph.mean_ms:.1f}", f"{r.frames_per_s:.1f}", f"{r.points_per_s:.0f}", f"{r.drift_percent:.2f}",
+                "-" if np.isnan(r.late_over_early) else f"{r.late_over_early:.2f}",
+            ]
             for r in self.rows
         ]
-        headers = ["estimator", "cap n", "live", "tracked", "frame ms (median)", "frame ms (p95)", "tracking ms", "update ms", "frames/s", "points/s", "drift %"]
+        headers = [
+            "estimator", "cap n", "live", "tracked", "frame ms (median)", "frame ms (p95)", "tracking ms", "update ms", "graph ms (mean)", "frames/s", "points/s", "drift %",
+            "frame 1500 / frame 150",
+        ]
         return format_table(headers, rows, title=f"estimator benchmark: '{self.scenario}' {self.image_size}, {self.frames} frames, on {self.machine}")
 
 
@@ -82,6 +93,8 @@ def bench_estimators(estimators=("gm", "ptpm"), point_counts=(50, 100, 130, 150,
         for n in progress(point_counts, total=len(point_counts), desc=f"bench {name}"):
             run = run_estimator(log, _config_for(name, n, sim.rig))
             fr = run.estimator.frames[5:]  # skip the start, while the map fills
+            total = np.array([f.timing_s["total"] for f in run.estimator.frames])
+            ratio = float(np.median(total[1450:1550]) / np.median(total[100:200])) if len(total) >= 1550 else float("nan")
             rows.append(
                 BenchRow(
                     name,
@@ -89,9 +102,11 @@ def bench_estimators(estimators=("gm", "ptpm"), point_counts=(50, 100, 130, 150,
                     TimingStats.from_seconds([f.timing_s["total"] for f in fr]),
                     TimingStats.from_seconds([f.timing_s["tracking"] for f in fr]),
                     TimingStats.from_seconds([f.timing_s["update"] for f in fr]),
+                    TimingStats.from_seconds([f.timing_s.get("graph", 0.0) for f in fr]),
                     float(np.median([f.n_live for f in fr])),
                     float(np.median([f.n_tracked for f in fr])),
                     float(run.metrics["trajectory"]["drift_percent"]),
+                    ratio,
                 )
             )
     cam = sim.rig.camera
