@@ -222,3 +222,16 @@ def test_a_failed_graph_update_restarts_the_smoother(smoke_log, monkeypatch):
     assert run.error is None and run.metrics["frames"] == 65
     assert run.metrics["events"]["graph_restarts"] == 1
     assert run.metrics["trajectory"]["drift_percent"] < 1.0
+
+
+def test_search_regions_match_the_smoothers_marginals(smoke_log):
+    """The approximate search regions (pose relative to the map + each point's own covariance)
+    against the exact ones from the smoother's joint marginal of the keyframe pose and the point.
+    Measured on this log: 81 % contained outright, the exact region sticking out by 0.5 % in sigma
+    at the 95th percentile; area ratio median 1.01."""
+    from dem_graph.evaluation.search_regions import search_region_study
+
+    s = search_region_study(smoke_log, every_keyframes=2).summary()
+    assert s["points"] > 200
+    assert s["containment_p95"] < 1.05**2  # at most 5 % of sigma outside, for 95 % of points
+    assert 0.9 < s["area_ratio_median"] < 1.2  # and not searching much more than needed

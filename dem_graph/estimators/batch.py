@@ -80,8 +80,8 @@ def smooth_batch(
     sigma_seed_px: float,
     landmark_of: dict[int, int],
     robust: bool = True,
-    max_iterations: int = 30,
-    relative_error_tol: float = 1e-5,
+    max_iterations: int = 10,
+    relative_error_tol: float = 1e-3,
 ) -> BatchResult:
     """Smooth the whole log from the initial estimates (``poses_init``: every frame's pose)."""
     t0 = time.perf_counter()

@@ -66,9 +66,11 @@ class Isam2Options(StrictModel):
     )
     robust: bool = Field(True, description="Huber kernel on projection factors and per-frame pixels")
     outlier_chi2: float = Field(9.21, gt=0, description="an observation whose normalised residual after the frame's pose update exceeds this (chi-square, 2 dof; 9.21 = 99 %) stays out of the graph")
-    pose_covariance_from_graph: bool = Field(True, description="each keyframe's pose covariance from the smoother's marginal (about 2-5 ms a keyframe)")
-    batch_max_iterations: int = Field(30, ge=1, description="isam2-batch: Levenberg-Marquardt iterations at most")
-    batch_relative_error_tol: float = Field(1e-5, gt=0, description="isam2-batch: stop when the error falls by less than this fraction")
+    pose_covariance_every_s: float = Field(
+        1.0, ge=0, description="take a keyframe pose's marginal covariance from the smoother (15-35 ms) at most this often, seconds; in between it is carried by odometry; 0: never (the covariance relative to the map)"
+    )
+    batch_max_iterations: int = Field(10, ge=1, description="isam2-batch: Levenberg-Marquardt iterations at most")
+    batch_relative_error_tol: float = Field(1e-3, gt=0, description="isam2-batch: stop when the error falls by less than this fraction")
 
 
 class Isam2Config(SharedSettings, Isam2Options):
@@ -137,6 +139,7 @@ class Isam2Slam(Estimator):
         # computed one frame after its keyframe, to spread the work): its pose, its marginal and the
         # motion covariance since
         self._anchor_T, self._anchor_P, self._anchor_Q = self.T.copy(), P0.copy(), np.zeros((6, 6))
+        self._anchor_t_s = self.t_s
         self._marginal_due: int | None = None
         self.frames_since_kf = 0
         self.live = LivePoints()
@@ -157,6 +160,7 @@ class Isam2Slam(Estimator):
         self._landmark_of: dict[int, int] = {}  # point id -> its current landmark
         self._pending_links: list[tuple[int, int, np.ndarray]] = []  # (old, new landmark, old covariance)
         self.batch_result = None
+        self.keyframe_hooks: list = []  # called as hook(self) after each keyframe's update (studies)
 
     # --- events ------------------------------------------------------------------------------
     def on_odometry(self, event: Odometry) -> None:
@@ -269,10 +273,9 @@ class Isam2Slam(Estimator):
         if len(live) == 0:
             return np.zeros(0, dtype=int), np.zeros((0, 2))
         fe = self.frontend
-        cam, T_body_cam = self.rig.camera_model, self.rig.T_body_cam
-        uv, Hp, Hx, in_front = project_with_jacobians(T_pred, live.X, cam, T_body_cam)
+        T_body_cam = self.rig.T_body_cam
         self._Sigma = live.covariances()  # this frame's, also for the pose update
-        S = Hp @ self.P_loc @ np.swapaxes(Hp, 1, 2) + Hx @ self._Sigma @ np.swapaxes(Hx, 1, 2) + self._sigma_px**2 * np.eye(2)
+        uv, S, in_front = self.search_regions(T_pred, self._Sigma)
         T_wc = T_pred @ T_body_cam
         warps = fe.template_warps(live.ids, live.X, T_wc)
         idx, found_uv = [], []
@@ -288,6 +291,15 @@ class Isam2Slam(Estimator):
             idx.append(i)
             found_uv.append(found)
         return np.array(idx, dtype=int), np.array(found_uv, dtype=float).reshape(-1, 2)
+
+    def search_regions(self, T_world_body: np.ndarray, Sigma: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Predicted pixels (n,2) of the live points from ``T_world_body``, their 2x2 innovation
+        covariances (n,2,2) and the in-front mask: the pose covariance relative to the map
+        (``P_loc``) and each point's own covariance, carried to the pixel, plus the pixel noise."""
+        uv, Hp, Hx, in_front = project_with_jacobians(T_world_body, self.live.X, self.rig.camera_model, self.rig.T_body_cam)
+        Sigma = self.live.covariances() if Sigma is None else Sigma
+        S = Hp @ self.P_loc @ np.swapaxes(Hp, 1, 2) + Hx @ Sigma @ np.swapaxes(Hx, 1, 2) + self._sigma_px**2 * np.eye(2)
+        return uv, S, in_front
 
     def _update_pose(self, T_pred: np.ndarray, idx: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """The frame's pose from its matches; returns which matches are inliers after it."""
@@ -409,6 +421,8 @@ class Isam2Slam(Estimator):
             live = self.live
             g.restart(self.T, self._output_covariance(), {int(lm): (live.X[i], self._point_covariance_world(i)) for i, lm in enumerate(live.landmark)})
             self._pending_links = []
+        # the recent poses move with the keyframe, so the spline placing this interval's scans stays smooth
+        self.history.correct(g.poses[k] @ invert(self.T))
         self.T = g.poses[k]
         self.history.append(t_s, self.T)
         in_window = np.array([g.in_window(int(lm)) for lm in self.live.landmark], dtype=bool)
@@ -416,16 +430,19 @@ class Isam2Slam(Estimator):
             self._archive(int(i), "marginalized")
         self.live.keep(in_window)
         self.live.X = np.array([g.points[int(lm)] for lm in self.live.landmark]).reshape(-1, 3)
-        if c.pose_covariance_from_graph:
-            back_to_back = self._marginal_due is not None  # no frame in between to spread the work to
-            self._marginal_due = k
-            if back_to_back:
-                self._take_marginal(k)
-        else:
+        every = c.pose_covariance_every_s
+        if every <= 0:
             self._anchor_T, self._anchor_P, self._anchor_Q = self.T.copy(), self.P_loc.copy(), np.zeros((6, 6))
+        elif t_s - self._anchor_t_s >= every:
+            # taken at the next frame that is not a keyframe, to spread the work; at once when overdue
+            self._marginal_due = k
+            if t_s - self._anchor_t_s >= 2 * every:
+                self._take_marginal(k)
         self.T_kf = self.T.copy()
         self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))
         self.frames_since_kf = 0
+        for hook in self.keyframe_hooks:
+            hook(self)
 
     def _output_covariance(self) -> np.ndarray:
         """The current pose's covariance: the anchor keyframe's marginal carried to it, plus the
@@ -439,6 +456,7 @@ class Isam2Slam(Estimator):
         self._marginal_due = None
         g = self.graph
         self._anchor_T, self._anchor_P = g.poses[k].copy(), g.pose_covariance(k)
+        self._anchor_t_s = g.keyframe_t_s[k]
         self._anchor_Q = self.Q_kf.copy() if k == g.last_keyframe else np.zeros((6, 6))
 
     # --- map management ----------------------------------------------------------------------

@@ -82,7 +82,7 @@ class KeyframeGraph:
         try:
             self.smoother.update(self._new_factors, self._new_values, self._stamps)
         except RuntimeError as exc:  # gtsam reports an indeterminate system or a missing key this way
-            text = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            text = " ".join(str(exc).split())[:300] or type(exc).__name__  # one line, with the variable gtsam names
             raise GraphUpdateError(f"the graph update at keyframe {self.last_keyframe} (t = {self.keyframe_t_s[-1]:.3f} s) failed: {text}") from None
         finally:
             self._new_factors = gtsam.NonlinearFactorGraph()

@@ -32,6 +32,13 @@ class PoseHistory:
         self._t.append(float(t_s))
         self._T.append(np.array(T_world_body, dtype=float))
 
+    def correct(self, T_correction: np.ndarray) -> None:
+        """Left-multiply every stored pose by ``T_correction`` (a world-frame re-anchoring, as when
+        a smoother moves the newest pose: the recent poses move with it and the spline stays smooth)."""
+        C = np.asarray(T_correction, dtype=float)
+        for i in range(len(self._T)):
+            self._T[i] = C @ self._T[i]
+
     def __len__(self) -> int:
         return len(self._t)
 
