@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.estimators.odometry import OdometryIntegrator
 from dem_graph.geometry.trajectory import Trajectory
 
 
@@ -98,3 +99,40 @@ class Estimator(abc.ABC):
     @abc.abstractmethod
     def result(self) -> EstimatorResult:
         """Everything estimated so far (live points included with their current estimates)."""
+
+
+class FrameDrivenEstimator(Estimator):
+    """The event handling GM, PTPM and the graph share: scans are queued for the next frame, and with
+    odometry a frame is held until the odometry covering its time has arrived (at most one odometry
+    period later), so its motion is measured, not extrapolated. Subclasses set ``_odometry``,
+    ``_scans``, ``_pending_frame``, ``use_odometry`` and ``wait_for_odometry`` and implement
+    :meth:`_process`, which must clear ``_pending_frame``."""
+
+    _odometry: OdometryIntegrator
+    _scans: list[LaserScan]
+    _pending_frame: CameraFrame | None
+    use_odometry: bool
+    wait_for_odometry: bool
+
+    @abc.abstractmethod
+    def _process(self, event: CameraFrame) -> FrameRecord: ...
+
+    def on_odometry(self, event: Odometry) -> None:
+        self._odometry.add(event)
+        if self._pending_frame is not None and event.t_s >= self._pending_frame.t_s:
+            self._process(self._pending_frame)
+
+    def on_scan(self, event: LaserScan) -> None:
+        self._scans.append(event)
+
+    def on_frame(self, event: CameraFrame) -> FrameRecord | None:
+        if self._pending_frame is not None:
+            self._process(self._pending_frame)
+        if self.use_odometry and self.wait_for_odometry and not self._odometry.covers(event.t_s):
+            self._pending_frame = event
+            return None
+        return self._process(event)
+
+    def finish(self) -> None:
+        if self._pending_frame is not None:
+            self._process(self._pending_frame)

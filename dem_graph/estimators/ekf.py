@@ -19,8 +19,8 @@ import numpy as np
 from pydantic import Field
 
 from dem_graph.config_types import StrictModel
-from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
-from dem_graph.estimators.base import Estimator, EstimatorResult, FrameRecord
+from dem_graph.datasets.events import CameraFrame, LaserScan
+from dem_graph.estimators.base import EstimatorResult, FrameDrivenEstimator, FrameRecord
 from dem_graph.estimators.ekf_filter import EkfState
 from dem_graph.estimators.odometry import OdometryIntegrator
 from dem_graph.estimators.settings import FalseMatches, MotionConfig, SharedSettings
@@ -41,7 +41,7 @@ class EkfConfig(SharedSettings, EkfOptions):
     variant: Literal["gm", "ptpm"] = Field("ptpm", description="gm: one batch update per image; ptpm: point to point")
 
 
-class EkfSlam(Estimator):
+class EkfSlam(FrameDrivenEstimator):
     """EKF SLAM with the shared front end; feed it events in time order."""
 
     def __init__(self, rig: SensorRig, T_world_body_initial: np.ndarray, t_start_s: float, has_odometry: bool, config: EkfConfig | None = None):
@@ -51,6 +51,7 @@ class EkfSlam(Estimator):
         self.frontend = FrontEnd(self.config.frontend, rig)
         m = self.config.motion
         self.use_odometry = m.uses_odometry(has_odometry)
+        self.wait_for_odometry = m.wait_for_odometry
         v0 = np.zeros(6)
         v0[3] = m.initial_speed_mps
         P_v0 = np.diag([0.3**2] * 3 + [m.initial_sigma_speed_mps**2] * 3)
@@ -69,29 +70,6 @@ class EkfSlam(Estimator):
         # searched, and (PTPM) as the prior covariance of the frame would have made it
         self.last_search_sizes: list[tuple[int, int]] = []
         self.last_prior_search_sizes: list[tuple[int, int]] = []
-
-    # --- events ------------------------------------------------------------------------------
-    def on_odometry(self, event: Odometry) -> None:
-        self._odometry.add(event)
-        if self._pending_frame is not None and event.t_s >= self._pending_frame.t_s:
-            self._process(self._pending_frame)
-
-    def on_scan(self, event: LaserScan) -> None:
-        self._scans.append(event)
-
-    def on_frame(self, event: CameraFrame) -> FrameRecord | None:
-        """Process the frame, or (with odometry) hold it until the odometry covering its time has
-        arrived, at most one odometry period later: the motion is then measured, not extrapolated."""
-        if self._pending_frame is not None:
-            self._process(self._pending_frame)
-        if self.use_odometry and self.config.motion.wait_for_odometry and not self._odometry.covers(event.t_s):
-            self._pending_frame = event
-            return None
-        return self._process(event)
-
-    def finish(self) -> None:
-        if self._pending_frame is not None:
-            self._process(self._pending_frame)
 
     def _process(self, event: CameraFrame) -> FrameRecord:
         self._pending_frame = None

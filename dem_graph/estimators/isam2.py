@@ -33,8 +33,8 @@ from gtsam.symbol_shorthand import L, X
 from pydantic import Field
 
 from dem_graph.config_types import StrictModel
-from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
-from dem_graph.estimators.base import Estimator, EstimatorResult, FrameRecord
+from dem_graph.datasets.events import CameraFrame, LaserScan
+from dem_graph.estimators.base import EstimatorResult, FrameDrivenEstimator, FrameRecord
 from dem_graph.estimators.graph_factors import calibration, odometry_factor, projection_factor, seed_factors
 from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
 from dem_graph.estimators.measurement_log import MeasurementLog
@@ -114,7 +114,7 @@ class LivePoints:
         return np.linalg.inv(self.info) if len(self) else np.zeros((0, 3, 3))
 
 
-class Isam2Slam(Estimator):
+class Isam2Slam(FrameDrivenEstimator):
     """Keyframe iSAM2 smoothing with the shared front end; feed it events in time order."""
 
     def __init__(self, rig: SensorRig, T_world_body_initial: np.ndarray, t_start_s: float, has_odometry: bool, config: Isam2Config | None = None):
@@ -124,6 +124,7 @@ class Isam2Slam(Estimator):
         self.rig = rig
         self.frontend = FrontEnd(c.frontend, rig)
         self.use_odometry = c.motion.uses_odometry(has_odometry)
+        self.wait_for_odometry = c.motion.wait_for_odometry
         self._K = calibration(rig.camera_model)
         self._sigma_px = c.frontend.sigma_px
         self._gate = self.frontend.tracker.gate_chi2
@@ -162,26 +163,8 @@ class Isam2Slam(Estimator):
         self.batch_result = None
         self.keyframe_hooks: list = []  # called as hook(self) after each keyframe's update (studies)
 
-    # --- events ------------------------------------------------------------------------------
-    def on_odometry(self, event: Odometry) -> None:
-        self._odometry.add(event)
-        if self._pending_frame is not None and event.t_s >= self._pending_frame.t_s:
-            self._process(self._pending_frame)
-
-    def on_scan(self, event: LaserScan) -> None:
-        self._scans.append(event)
-
-    def on_frame(self, event: CameraFrame) -> FrameRecord | None:
-        if self._pending_frame is not None:
-            self._process(self._pending_frame)
-        if self.use_odometry and self.config.motion.wait_for_odometry and not self._odometry.covers(event.t_s):
-            self._pending_frame = event
-            return None
-        return self._process(event)
-
     def finish(self) -> None:
-        if self._pending_frame is not None:
-            self._process(self._pending_frame)
+        super().finish()
         if self.log is not None and self._frames:
             from dem_graph.estimators.batch import smooth_batch
 
