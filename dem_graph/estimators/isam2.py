@@ -14,9 +14,11 @@ projection factor for every inlier observation of the frame, and the new points 
 flat-ground factors; then one iSAM2 update over the lag. The keyframe's smoothed pose and the live
 points' smoothed positions replace the per-frame ones.
 
-Non-keyframe observations are used by the per-frame pose only (the graph holds the keyframes':
-consecutive frames see a point from nearly the same place, and one iSAM2 update per frame costs
-more than the 40 ms a frame has; see the design notes). ``keyframe_every: 1`` puts every frame in.
+Non-keyframe observations are used by the per-frame pose, and reach the graph only through the
+weight of the next keyframe observation of the point (``sigma_px / sqrt(n)`` for the n frames that
+tracked it since its last one): consecutive frames see a point from nearly the same place, and one
+iSAM2 update per frame costs more than the 40 ms a frame has (see the design notes).
+``keyframe_every: 1`` puts every frame in.
 
 ``batch: true`` (``--estimator isam2-batch``) also records every observation of every frame, and at
 the end smooths the whole log at once (:mod:`dem_graph.estimators.batch`).
@@ -53,7 +55,7 @@ log = logging.getLogger(__name__)
 class Isam2Options(StrictModel):
     """What only the graph estimator has."""
 
-    keyframe_every: int = Field(5, ge=1, description="a keyframe every this many frames (1: every frame)")
+    keyframe_every: int = Field(3, ge=1, description="a keyframe every this many frames (1: every frame)")
     keyframe_min_live_fraction: float = Field(0.8, ge=0, le=1, description="also a keyframe when the live points fall below this fraction of the cap (new points enter at keyframes)")
     lag_s: float = Field(1.5, gt=0, description="fixed lag of the smoother, seconds: older variables are marginalised")
     relinearize_threshold: float = Field(0.01, gt=0, description="iSAM2 relinearises a variable whose update exceeds this")
