@@ -235,3 +235,23 @@ def test_search_regions_match_the_smoothers_marginals(smoke_log):
     assert s["points"] > 200
     assert s["containment_p95"] < 1.05**2  # at most 5 % of sigma outside, for 95 % of points
     assert 0.9 < s["area_ratio_median"] < 1.2  # and not searching much more than needed
+
+
+def test_effective_sample_size_of_correlated_frames():
+    """n consecutive AR(1) errors with lag-1 correlation rho: the variance of their mean is
+    sigma^2 (1 + 2 sum_k (1 - k/n) rho^k) / n; without correlation n frames are n samples, and for
+    long runs the ratio tends to (1 - rho) / (1 + rho)."""
+    from dem_graph.estimators.isam2 import effective_sample_size
+
+    np.testing.assert_allclose(effective_sample_size(np.array([1, 3, 7]), 0.0), [1, 3, 7])
+    np.testing.assert_allclose(effective_sample_size(np.array([1]), 0.6), [1.0])
+    np.testing.assert_allclose(effective_sample_size(np.array([3]), 0.6), [3 / (1 + 2 * (2 / 3 * 0.6 + 1 / 3 * 0.36))])
+    n = 2000
+    assert effective_sample_size(np.array([n]), 0.6)[0] / n == pytest.approx(0.4 / 1.6, rel=2e-3)
+    # and the same from simulated AR(1) errors: the variance of the mean of 5 frames
+    rng = np.random.default_rng(0)
+    e = np.zeros((20000, 5))
+    e[:, 0] = rng.standard_normal(20000)
+    for k in range(1, 5):
+        e[:, k] = 0.6 * e[:, k - 1] + np.sqrt(1 - 0.36) * rng.standard_normal(20000)
+    assert 1.0 / np.var(e.mean(axis=1)) == pytest.approx(effective_sample_size(np.array([5]), 0.6)[0], rel=0.03)

@@ -63,6 +63,9 @@ class Isam2Options(StrictModel):
     keyframe_weighting: bool = Field(
         True, description="a keyframe observation carries the information of the frames that tracked the point since its last keyframe observation (sigma_px / sqrt(n))"
     )
+    track_correlation: float = Field(
+        0.0, ge=0, lt=1, description="lag-1 autocorrelation of a track's pixel errors from frame to frame (AR(1)); n frames then carry the information of n_eff < n independent ones"
+    )
     split_link_sigma_m: float = Field(
         0.005, gt=0, description="a patch refresh starts a new landmark, tied to the old one with this sigma (the ground point under the new patch is a few mm away), metres"
     )
@@ -79,6 +82,18 @@ class Isam2Config(SharedSettings, Isam2Options):
     """The graph estimator's options with the settings every estimator shares."""
 
     batch: bool = Field(False, description="record every observation and smooth the whole log at the end (isam2-batch)")
+
+
+def effective_sample_size(n: np.ndarray, rho: float) -> np.ndarray:
+    """How many independent samples the mean of ``n`` consecutive AR(1) samples with lag-1
+    correlation ``rho`` is worth: ``n / (1 + 2 sum_{k<n} (1 - k/n) rho^k)``; ``n`` when ``rho`` is 0."""
+    n = np.asarray(n, dtype=float)
+    if rho == 0.0:
+        return n
+    k = np.arange(1, int(n.max()) if n.size else 1)
+    terms = (1.0 - k[None, :] / n[:, None]) * rho ** k[None, :]
+    inflation = 1.0 + 2.0 * np.sum(np.where(k[None, :] < n[:, None], terms, 0.0), axis=1)
+    return n / inflation
 
 
 class LivePoints:
@@ -172,7 +187,9 @@ class Isam2Slam(FrameDrivenEstimator):
 
             c = self.config
             self.batch_result = smooth_batch(
-                self.log, self.rig, self._T0, self._P0, self.smoothed_poses(), self.graph.points, self._sigma_px, c.frontend.camera_point_sigma_px,
+                # every frame's observation, with AR(1) errors: each carries (1 - rho) / (1 + rho) of an independent one's information
+                self.log, self.rig, self._T0, self._P0, self.smoothed_poses(), self.graph.points,
+                self._sigma_px * np.sqrt((1 + c.track_correlation) / (1 - c.track_correlation)), c.frontend.camera_point_sigma_px,
                 self._landmark_of,
                 robust=c.robust, max_iterations=c.batch_max_iterations, relative_error_tol=c.batch_relative_error_tol,
             )
@@ -360,7 +377,7 @@ class Isam2Slam(FrameDrivenEstimator):
         keep = np.array([g.in_window(int(lm)) for lm in live.landmark[idx]], dtype=bool)
         idx, uv = idx[keep], uv[keep]
         n = np.maximum(live.n_since_keyframe[idx], 1) if self.config.keyframe_weighting else np.ones(len(idx), dtype=np.int64)
-        sigma = self._sigma_px / np.sqrt(n)
+        sigma = self._sigma_px / np.sqrt(effective_sample_size(n, self.config.track_correlation))
         for i, z, s in zip(idx, uv, sigma):
             lm = int(live.landmark[i])
             g.add_factor(projection_factor(X(k), L(lm), z, float(s), self._K, T_body_cam, robust=self.config.robust))
