@@ -9,6 +9,12 @@ from __future__ import annotations
 from pathlib import Path
 
 
+def one_line(exc: BaseException, max_chars: int = 300) -> str:
+    """An exception's whole message on one line (whitespace collapsed, at most ``max_chars``), or its
+    type's name when it has none: for errors from libraries whose messages span lines (gtsam)."""
+    return " ".join(str(exc).split())[:max_chars] or type(exc).__name__
+
+
 class DemGraphError(Exception):
     """Base class of every error dem_graph raises on purpose."""
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, get_args
@@ -64,6 +65,25 @@ class RunResult:
     elapsed_s: float = 0.0
 
 
+def feed(estimator: Estimator, sequence: Sequence, max_frames: int | None = None) -> Iterator[int]:
+    """Give the sequence's events to ``estimator`` in time order (with a progress bar), up to
+    ``max_frames`` camera frames, then call its ``finish``. Yields the number of camera frames
+    given so far after each one."""
+    frames = 0
+    for event in progress(sequence.events(), total=sequence.event_count(), desc=estimator.name, unit="event"):
+        if isinstance(event, CameraFrame):
+            estimator.on_frame(event)
+            frames += 1
+            yield frames
+            if max_frames and frames >= max_frames:
+                break
+        elif isinstance(event, LaserScan):
+            estimator.on_scan(event)
+        elif isinstance(event, Odometry):
+            estimator.on_odometry(event)
+    estimator.finish()
+
+
 def run_estimator(sequence: Sequence, config: RunConfig | None = None) -> RunResult:
     config = config or RunConfig()
     estimator = make_estimator(sequence, config)
@@ -71,17 +91,8 @@ def run_estimator(sequence: Sequence, config: RunConfig | None = None) -> RunRes
     error = None
     frames = 0
     try:
-        for event in progress(sequence.events(), total=sequence.event_count(), desc=estimator.name, unit="event"):
-            if isinstance(event, CameraFrame):
-                estimator.on_frame(event)
-                frames += 1
-                if config.max_frames and frames >= config.max_frames:
-                    break
-            elif isinstance(event, LaserScan):
-                estimator.on_scan(event)
-            elif isinstance(event, Odometry):
-                estimator.on_odometry(event)
-        estimator.finish()
+        for frames in feed(estimator, sequence, config.max_frames):  # noqa: B007 - read in the handler below
+            pass
     except DemGraphError as exc:
         error = str(exc)
         log.error("run stopped after %d frames: %s", frames, exc)

@@ -20,9 +20,9 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
-from dem_graph.errors import DemGraphError
+from dem_graph.errors import DemGraphError, one_line
 from dem_graph.estimators.base import EstimatorResult
-from dem_graph.estimators.graph_factors import calibration, odometry_factor, projection_factor, seed_factors
+from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
 from dem_graph.estimators.measurement_log import MeasurementLog
 from dem_graph.geometry.rig import SensorRig
 
@@ -59,7 +59,7 @@ def build_graph(mlog: MeasurementLog, rig: SensorRig, T0: np.ndarray, P0: np.nda
     for f in range(mlog.n_frames):
         graph.add(odometry_factor(X(f), X(f + 1), mlog.T_prev_curr[f], mlog.motion_covariance[f]))
     for before, after, sigma_m in mlog.links:
-        graph.add(gtsam.BetweenFactorPoint3(L(before), L(after), gtsam.Point3(0.0, 0.0, 0.0), gtsam.noiseModel.Isotropic.Sigma(3, sigma_m)))
+        graph.add(link_factor(L(before), L(after), sigma_m))
     for f, lm, seed in zip(mlog.seed_frame, mlog.seed_landmark, mlog.seeds):
         for factor in seed_factors(X(f + 1), L(lm), seed.kind, seed.p_body, seed.Sigma_body, rig.camera_model, K, T_body_cam, sigma_seed_px):
             graph.add(factor)
@@ -78,7 +78,6 @@ def smooth_batch(
     points_init: dict[int, np.ndarray],
     sigma_px: float,
     sigma_seed_px: float,
-    landmark_of: dict[int, int],
     robust: bool = True,
     max_iterations: int = 10,
     relative_error_tol: float = 1e-3,
@@ -98,18 +97,18 @@ def smooth_batch(
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(relative_error_tol)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    error_initial = graph.error(values)
+    error_initial = optimizer.error()  # the optimiser evaluates it on construction
     try:
         out = optimizer.optimize()
     except RuntimeError as exc:
-        raise DemGraphError(f"the batch optimisation failed: {str(exc).splitlines()[0]}") from None
+        raise DemGraphError(f"the batch optimisation failed: {one_line(exc)}") from None
     t2 = time.perf_counter()
     result = BatchResult(
         poses=np.array([out.atPose3(X(f + 1)).matrix() for f in range(mlog.n_frames)]),
         points={lm: out.atPoint3(L(lm)) for lm in landmarks},
         iterations=optimizer.iterations(),
         error_initial=float(error_initial),
-        error_final=float(graph.error(out)),
+        error_final=float(optimizer.error()),
         build_s=t1 - t0,
         optimize_s=t2 - t1,
         n_factors=graph.size(),

@@ -14,6 +14,7 @@
 - :func:`projection_factor`: a ``GenericProjectionFactorCal3DS2`` with ``T_body_cam`` as the
   sensor offset and a robust (Huber) kernel.
 - :func:`seed_factors`: the factors a new point enters the graph with (laser or flat-ground seed).
+- :func:`link_factor`: a landmark continued by another (a patch refresh), within a sigma.
 
 Covariances are in gtsam's tangent order [rotation, translation] (the package convention).
 """
@@ -25,7 +26,7 @@ import numpy as np
 
 from dem_graph.frontend.frontend import LASER
 from dem_graph.geometry.camera import PinholeCamera
-from dem_graph.geometry.se3 import invert
+from dem_graph.geometry.se3 import invert, transform_points
 
 HUBER_K = 1.345  # 95 % efficiency on Gaussian residuals
 
@@ -117,8 +118,12 @@ def seed_factors(
     range_m = float(np.linalg.norm(ray))
     r = ray / range_m
     sigma_along = float(np.sqrt(r @ np.asarray(Sigma_body) @ r))
-    p_cam = invert(T_body_cam)[:3, :3] @ p + invert(T_body_cam)[:3, 3]
-    uv, in_front = camera.project(p_cam[None])
+    uv, in_front = camera.project(transform_points(invert(T_body_cam), p[None]))
     if not in_front[0]:
         raise ValueError(f"a camera seed must lie in front of the camera, got {p} in the body frame")
     return [range_factor(pose_key, point_key, range_m, sigma_along, T_body_cam), projection_factor(pose_key, point_key, uv[0], sigma_seed_px, K, T_body_cam, robust=False)]
+
+
+def link_factor(key_before: int, key_after: int, sigma_m: float) -> gtsam.BetweenFactorPoint3:
+    """Landmark ``key_after`` is landmark ``key_before`` to within ``sigma_m`` (metres, each axis)."""
+    return gtsam.BetweenFactorPoint3(key_before, key_after, gtsam.Point3(0.0, 0.0, 0.0), gtsam.noiseModel.Isotropic.Sigma(3, float(sigma_m)))

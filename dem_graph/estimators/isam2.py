@@ -37,7 +37,7 @@ from pydantic import Field
 from dem_graph.config_types import StrictModel
 from dem_graph.datasets.events import CameraFrame, LaserScan
 from dem_graph.estimators.base import EstimatorResult, FrameDrivenEstimator, FrameRecord
-from dem_graph.estimators.graph_factors import calibration, odometry_factor, projection_factor, seed_factors
+from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
 from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
 from dem_graph.estimators.measurement_log import MeasurementLog
 from dem_graph.estimators.odometry import OdometryIntegrator
@@ -97,7 +97,7 @@ def effective_sample_size(n: np.ndarray, rho: float) -> np.ndarray:
 
 
 class LivePoints:
-    """The points being tracked: ids, kinds, world positions and each one's 3x3 information
+    """The points being tracked: ids, world positions and each one's 3x3 information
     (its seed's plus its keyframe observations', poses held fixed); the graph landmark each one
     follows now and the patch segment it belongs to."""
 
@@ -105,7 +105,6 @@ class LivePoints:
         self.ids = np.zeros(0, dtype=np.int64)
         self.landmark = np.zeros(0, dtype=np.int64)
         self.segment = np.zeros(0, dtype=np.int64)
-        self.kinds = np.zeros(0, dtype=np.int8)
         self.X = np.zeros((0, 3))
         self.info = np.zeros((0, 3, 3))
         self.n_since_keyframe = np.zeros(0, dtype=np.int64)  # inlier frames since the last keyframe observation
@@ -113,17 +112,16 @@ class LivePoints:
     def __len__(self) -> int:
         return len(self.ids)
 
-    def add(self, ids, landmarks, kinds, X_world, Sigma_world) -> None:
+    def add(self, ids, landmarks, X_world, Sigma_world) -> None:
         self.ids = np.concatenate([self.ids, np.asarray(ids, dtype=np.int64)])
         self.landmark = np.concatenate([self.landmark, np.asarray(landmarks, dtype=np.int64)])
         self.segment = np.concatenate([self.segment, np.zeros(len(ids), dtype=np.int64)])
-        self.kinds = np.concatenate([self.kinds, np.asarray(kinds, dtype=np.int8)])
         self.X = np.concatenate([self.X, np.asarray(X_world, dtype=float).reshape(-1, 3)])
         self.info = np.concatenate([self.info, np.linalg.inv(np.asarray(Sigma_world, dtype=float).reshape(-1, 3, 3))])
         self.n_since_keyframe = np.concatenate([self.n_since_keyframe, np.zeros(len(ids), dtype=np.int64)])
 
     def keep(self, mask: np.ndarray) -> None:
-        self.ids, self.kinds, self.X, self.info = self.ids[mask], self.kinds[mask], self.X[mask], self.info[mask]
+        self.ids, self.X, self.info = self.ids[mask], self.X[mask], self.info[mask]
         self.landmark, self.segment = self.landmark[mask], self.segment[mask]
         self.n_since_keyframe = self.n_since_keyframe[mask]
 
@@ -190,7 +188,6 @@ class Isam2Slam(FrameDrivenEstimator):
                 # every frame's observation, with AR(1) errors: each carries (1 - rho) / (1 + rho) of an independent one's information
                 self.log, self.rig, self._T0, self._P0, self.smoothed_poses(), self.graph.points,
                 self._sigma_px * np.sqrt((1 + c.track_correlation) / (1 - c.track_correlation)), c.frontend.camera_point_sigma_px,
-                self._landmark_of,
                 robust=c.robust, max_iterations=c.batch_max_iterations, relative_error_tol=c.batch_relative_error_tol,
             )
 
@@ -220,7 +217,7 @@ class Isam2Slam(FrameDrivenEstimator):
         graph_s = 0.0
         if is_keyframe:
             tg = time.perf_counter()
-            self._keyframe_observations(idx[inlier], uv[inlier])
+            self._keyframe_observations(idx[inlier], uv[inlier], self._H_point[inlier])
             graph_s = time.perf_counter() - tg
         tm = time.perf_counter()
         self.history.append(event.t_s, self.T)
@@ -310,11 +307,13 @@ class Isam2Slam(FrameDrivenEstimator):
         if len(idx) == 0:
             self.T = T_pred
             inlier = np.zeros(0, dtype=bool)
+            self._H_point = np.zeros((0, 2, 3))
         else:
             Sigma = self._Sigma[idx]
             cam, T_body_cam = self.rig.camera_model, self.rig.T_body_cam
             self.T, self.P_loc = update_pose(T_pred, self.P_loc, live.X[idx], Sigma, uv, cam, T_body_cam, self._sigma_px, robust=self.config.robust)
             pred, _, Hx, _ = project_with_jacobians(self.T, live.X[idx], cam, T_body_cam)
+            self._H_point = Hx  # d pixel / d point at the frame's pose, also for the keyframe's information
             R = self._sigma_px**2 * np.eye(2) + Hx @ Sigma @ np.swapaxes(Hx, 1, 2)
             r = uv - pred
             d2 = np.einsum("ni,nij,nj->n", r, np.linalg.inv(R), r)
@@ -358,24 +357,25 @@ class Isam2Slam(FrameDrivenEstimator):
             X_old = g.points[old]
             g.add_point(new, X_old)
             if g.in_window(old):
-                g.add_factor(gtsam.BetweenFactorPoint3(L(old), L(new), gtsam.Point3(0.0, 0.0, 0.0), gtsam.noiseModel.Isotropic.Sigma(3, sigma)))
+                g.add_factor(link_factor(L(old), L(new), sigma))
             else:
                 g.add_factor(gtsam.PriorFactorPoint3(L(new), gtsam.Point3(*X_old), gtsam.noiseModel.Gaussian.Covariance(Sigma_old + sigma**2 * np.eye(3))))
         self._pending_links = []
 
     # --- keyframes ---------------------------------------------------------------------------
-    def _keyframe_observations(self, idx: np.ndarray, uv: np.ndarray) -> None:
-        """A keyframe pose variable, the motion since the last one, and this frame's inlier observations."""
+    def _keyframe_observations(self, idx: np.ndarray, uv: np.ndarray, H_point: np.ndarray) -> None:
+        """A keyframe pose variable, the motion since the last one, and this frame's inlier
+        observations (live indices ``idx``, pixels ``uv``, pixel Jacobians ``H_point`` w.r.t. the points)."""
         g = self.graph
         k = g.last_keyframe
         if self.t_s > g.keyframe_t_s[-1]:  # else: the first frame, at the start pose's time
             k = g.add_keyframe(self.t_s, self.T)
             g.add_factor(odometry_factor(X(k - 1), X(k), self.U_kf, self.Q_kf))
-        cam, T_body_cam = self.rig.camera_model, self.rig.T_body_cam
+        T_body_cam = self.rig.T_body_cam
         live = self.live
         self._add_pending_links()
         keep = np.array([g.in_window(int(lm)) for lm in live.landmark[idx]], dtype=bool)
-        idx, uv = idx[keep], uv[keep]
+        idx, uv, H_point = idx[keep], uv[keep], H_point[keep]
         n = np.maximum(live.n_since_keyframe[idx], 1) if self.config.keyframe_weighting else np.ones(len(idx), dtype=np.int64)
         sigma = self._sigma_px / np.sqrt(effective_sample_size(n, self.config.track_correlation))
         for i, z, s in zip(idx, uv, sigma):
@@ -383,10 +383,8 @@ class Isam2Slam(FrameDrivenEstimator):
             g.add_factor(projection_factor(X(k), L(lm), z, float(s), self._K, T_body_cam, robust=self.config.robust))
             g.observed(lm)
         live.n_since_keyframe[idx] = 0
-        if len(idx):
-            # the points' information from this observation, the pose held fixed
-            _, _, Hx, _ = project_with_jacobians(self.T, live.X[idx], cam, T_body_cam)
-            live.info[idx] += np.swapaxes(Hx, 1, 2) @ Hx / (sigma**2)[:, None, None]
+        # the points' information from this observation, the pose held fixed
+        live.info[idx] += np.swapaxes(H_point, 1, 2) @ H_point / (sigma**2)[:, None, None]
 
     def _new_points(self, image, t_s: float, live_uv: np.ndarray) -> list[NewPoint]:
         scans, self._scans = [s for s in self._scans if s.t_s <= t_s], [s for s in self._scans if s.t_s > t_s]
@@ -400,7 +398,6 @@ class Isam2Slam(FrameDrivenEstimator):
         if new:
             R = self.T[:3, :3]
             ids = np.array([p.point_id for p in new])
-            kinds = np.array([p.kind for p in new])
             X_world = transform_points(self.T, np.array([p.p_body for p in new]))
             Sigma_world = R @ np.array([p.Sigma_body for p in new]) @ R.T
             landmarks = np.arange(self._next_landmark, self._next_landmark + len(new))
@@ -410,7 +407,7 @@ class Isam2Slam(FrameDrivenEstimator):
                 self._landmark_of[p.point_id] = int(lm)
                 for f in seed_factors(X(k), L(int(lm)), p.kind, p.p_body, p.Sigma_body, self.rig.camera_model, self._K, self.rig.T_body_cam, c.frontend.camera_point_sigma_px):
                     g.add_factor(f)
-            self.live.add(ids, landmarks, kinds, X_world, Sigma_world)
+            self.live.add(ids, landmarks, X_world, Sigma_world)
             if self.log is not None:
                 self.log.add_seeds(len(self._frames), new, landmarks)
         try:

@@ -20,10 +20,9 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from dem_graph.datasets.base import Sequence
-from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
 from dem_graph.estimators.isam2 import Isam2Config, Isam2Slam
 from dem_graph.estimators.pose_update import project_with_jacobians
-from dem_graph.progress import progress
+from dem_graph.run import feed
 
 
 @dataclass
@@ -82,17 +81,8 @@ def search_region_study(sequence: Sequence, config: Isam2Config | None = None, e
             compare_at_keyframe(e, study, points_per_keyframe, rng)
 
     est.keyframe_hooks.append(hook)
-    frames = 0
-    for event in progress(sequence.events(), total=sequence.event_count(), desc="search regions", unit="event"):
-        if isinstance(event, CameraFrame):
-            est.on_frame(event)
-            frames += 1
-            if max_frames and frames >= max_frames:
-                break
-        elif isinstance(event, LaserScan):
-            est.on_scan(event)
-        elif isinstance(event, Odometry):
-            est.on_odometry(event)
+    for _ in feed(est, sequence, max_frames):
+        pass
     return study
 
 
