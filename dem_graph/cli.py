@@ -91,9 +91,8 @@ def _open_dataset(path: Path):
 @click.option(
     "--estimator",
     type=click.Choice(["gm", "ptpm", "isam2", "isam2-batch"]),
-    default="ptpm",
-    show_default=True,
-    help="gm, ptpm: the paper's EKF variants; isam2: the online graph (fixed-lag smoothing); isam2-batch: the online pass, then the whole log smoothed.",
+    default=None,
+    help="gm, ptpm: the paper's EKF variants; isam2: the online graph (fixed-lag smoothing); isam2-batch: the online pass, then the whole log smoothed. [default: the config file's, else ptpm]",
 )
 @click.option("--lag", "lag_s", type=float, default=None, help="isam2: fixed lag of the smoother, seconds.")
 @click.option("--keyframe-every", type=int, default=None, help="isam2: a keyframe every this many frames (1: every frame).")

@@ -1,4 +1,4 @@
-"""The factor-graph estimator: keyframes in an incremental fixed-lag smoother (iSAM2), a pose per frame.
+"""The factor-graph estimator: frame poses and map points in an incremental fixed-lag smoother (iSAM2).
 
 Every frame (docs/isam2_design.md):
 1. predict the pose from odometry (or a constant-velocity guess) and propagate its covariance;
@@ -8,17 +8,19 @@ Every frame (docs/isam2_design.md):
 3. update the pose against the points (:func:`update_pose`: points fixed, their covariance as
    pixel noise, Huber weights). This is the frame's output: what was known at that frame.
 
-Every ``keyframe_every`` frames (sooner when the map runs short of points), the frame becomes a
-keyframe of the graph (:class:`KeyframeGraph`): a pose variable, the odometry between keyframes, a
-projection factor for every inlier observation of the frame, and the new points with their laser or
-flat-ground factors; then one iSAM2 update over the lag. The keyframe's smoothed pose and the live
-points' smoothed positions replace the per-frame ones.
+Every frame by default (``keyframe_every: 1``), and otherwise every ``keyframe_every`` frames or
+sooner when the map runs short of points, the frame becomes a keyframe of the graph
+(:class:`KeyframeGraph`): a pose variable, the odometry since the last one, a projection factor
+for every inlier observation of the frame, and the new points with their laser or flat-ground
+factors; then one iSAM2 update. The keyframe's smoothed pose and the live points' smoothed
+positions replace the per-frame ones. The window is cut back to ``lag_s`` every
+``marginalize_every_s`` (:meth:`KeyframeGraph.marginalize`), at a frame that is not a keyframe when
+there is one.
 
-Non-keyframe observations are used by the per-frame pose, and reach the graph only through the
-weight of the next keyframe observation of the point (``sigma_px / sqrt(n)`` for the n frames that
-tracked it since its last one): consecutive frames see a point from nearly the same place, and one
-iSAM2 update per frame costs more than the 40 ms a frame has (see the design notes).
-``keyframe_every: 1`` puts every frame in.
+With keyframes every n > 1 frames, the observations in between are used by the per-frame pose, and
+reach the graph only through the weight of the next keyframe observation of the point
+(``sigma_px / sqrt(n)``). That is cheaper, but it was less accurate and diverged in the turns of
+the ``paper`` log (see the design notes).
 
 ``batch: true`` (``--estimator isam2-batch``) also records every observation of every frame, and at
 the end smooths the whole log at once (:mod:`dem_graph.estimators.batch`).
@@ -55,9 +57,12 @@ log = logging.getLogger(__name__)
 class Isam2Options(StrictModel):
     """What only the graph estimator has."""
 
-    keyframe_every: int = Field(3, ge=1, description="a keyframe every this many frames (1: every frame)")
+    keyframe_every: int = Field(1, ge=1, description="a keyframe every this many frames (1: every frame a pose of the graph; more is faster but was less accurate and, on paper, unstable in turns)")
     keyframe_min_live_fraction: float = Field(0.8, ge=0, le=1, description="also a keyframe when the live points fall below this fraction of the cap (new points enter at keyframes)")
     lag_s: float = Field(1.5, gt=0, description="fixed lag of the smoother, seconds: older variables are marginalised")
+    marginalize_every_s: float = Field(
+        0.5, gt=0, description="the window is cut back to the lag once it spans lag_s + this, seconds (at a frame that is not a keyframe: one batch elimination of the window)"
+    )
     relinearize_threshold: float = Field(0.01, gt=0, description="iSAM2 relinearises a variable whose update exceeds this")
     relinearize_skip: int = Field(1, ge=1, description="iSAM2 checks for relinearisation every this many updates")
     keyframe_weighting: bool = Field(
@@ -148,7 +153,7 @@ class Isam2Slam(FrameDrivenEstimator):
         P0 = np.eye(6) * c.motion.initial_sigma_pose**2
         self._T0, self._P0 = self.T.copy(), P0
         self.P_loc = P0.copy()  # pose covariance relative to the map (search regions)
-        self.graph = KeyframeGraph(self.T, P0, self.t_s, c.lag_s, c.relinearize_threshold, c.relinearize_skip)
+        self.graph = KeyframeGraph(self.T, P0, self.t_s, c.lag_s, c.relinearize_threshold, c.relinearize_skip, c.marginalize_every_s)
         self.T_kf = self.T.copy()  # the last keyframe's pose, smoothed when it was made
         self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))  # motion since the last keyframe
         # the output covariance rides on the latest keyframe whose marginal is known (it is
@@ -230,6 +235,10 @@ class Isam2Slam(FrameDrivenEstimator):
             self._finish_keyframe(new, event.t_s)
             graph_s += time.perf_counter() - tn
             map_s += tn - tg
+        elif self.graph.marginalization_due:
+            tg = time.perf_counter()
+            self._marginalize()
+            graph_s += time.perf_counter() - tg
         elif self._marginal_due is not None:
             tg = time.perf_counter()
             self._take_marginal(self._marginal_due)
@@ -416,32 +425,52 @@ class Isam2Slam(FrameDrivenEstimator):
             # start over from the current estimates (this keyframe's new factors are lost); a second
             # failure ends the run with what was computed
             log.warning("%s; restarting the smoother from the current estimates", exc)
-            self.frontend.counters["graph_restarts"] += 1
-            live = self.live
-            g.restart(self.T, self._output_covariance(), {int(lm): (live.X[i], self._point_covariance_world(i)) for i, lm in enumerate(live.landmark)})
-            self._pending_links = []
+            self._restart_graph(self.T)
         # the recent poses move with the keyframe, so the spline placing this interval's scans stays smooth
         self.history.correct(g.poses[k] @ invert(self.T))
         self.T = g.poses[k]
         self.history.append(t_s, self.T)
+        if c.keyframe_every == 1 and g.marginalization_due:  # no frame in between to do it
+            self._marginalize()
+        self._take_graph_estimates()
+        self.T_kf = self.T.copy()
+        self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))
+        self.frames_since_kf = 0
+        every = c.pose_covariance_every_s
+        if every <= 0:
+            self._anchor_T, self._anchor_P, self._anchor_Q = self.T.copy(), self.P_loc.copy(), np.zeros((6, 6))
+        elif t_s - self._anchor_t_s >= every:
+            # taken at the next frame that is not a keyframe, to spread the work; at once when
+            # overdue or when every frame is a keyframe
+            self._marginal_due = k
+            if c.keyframe_every == 1 or t_s - self._anchor_t_s >= 2 * every:
+                self._take_marginal(k)
+        for hook in self.keyframe_hooks:
+            hook(self)
+
+    def _marginalize(self) -> None:
+        """Cut the graph's window back to the lag; restart the smoother if that fails."""
+        try:
+            self.graph.marginalize()
+        except GraphUpdateError as exc:
+            log.warning("%s; restarting the smoother from the current estimates", exc)
+            self._restart_graph(self.T_kf)  # the current frame's covariance: a little wider than the keyframe's
+        self._take_graph_estimates()
+
+    def _restart_graph(self, T_world_body_keyframe: np.ndarray) -> None:
+        self.frontend.counters["graph_restarts"] += 1
+        live = self.live
+        self.graph.restart(T_world_body_keyframe, self._output_covariance(), {int(lm): (live.X[i], self._point_covariance_world(i)) for i, lm in enumerate(live.landmark)})
+        self._pending_links = []
+
+    def _take_graph_estimates(self) -> None:
+        """The live points take the graph's estimates; those it has marginalised are archived."""
+        g = self.graph
         in_window = np.array([g.in_window(int(lm)) for lm in self.live.landmark], dtype=bool)
         for i in np.flatnonzero(~in_window):
             self._archive(int(i), "marginalized")
         self.live.keep(in_window)
         self.live.X = np.array([g.points[int(lm)] for lm in self.live.landmark]).reshape(-1, 3)
-        every = c.pose_covariance_every_s
-        if every <= 0:
-            self._anchor_T, self._anchor_P, self._anchor_Q = self.T.copy(), self.P_loc.copy(), np.zeros((6, 6))
-        elif t_s - self._anchor_t_s >= every:
-            # taken at the next frame that is not a keyframe, to spread the work; at once when overdue
-            self._marginal_due = k
-            if t_s - self._anchor_t_s >= 2 * every:
-                self._take_marginal(k)
-        self.T_kf = self.T.copy()
-        self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))
-        self.frames_since_kf = 0
-        for hook in self.keyframe_hooks:
-            hook(self)
 
     def _output_covariance(self) -> np.ndarray:
         """The current pose's covariance: the anchor keyframe's marginal carried to it, plus the

@@ -1,10 +1,20 @@
-"""The online graph: keyframe poses and map points in gtsam's incremental fixed-lag smoother (iSAM2).
+"""The online graph: keyframe poses and map points in an iSAM2 whose window we marginalise ourselves.
 
 Variables are ``X(k)``, the body pose ``T_world_body`` of keyframe k, and ``L(j)``, the world
 position of landmark ``j`` (metres). Each variable carries a timestamp: a keyframe its time, a point
-the time of the last keyframe that observed it. Whatever is older than ``lag_s`` behind the newest
-keyframe is marginalised out (its information stays as a linear factor on what remains), so the
-cost of an update follows the window, not the length of the run.
+the time of the last keyframe that observed it.
+
+Updates are incremental (``gtsam.ISAM2``). The window is cut by :meth:`KeyframeGraph.marginalize`,
+once it spans more than ``lag_s + marginalize_every_s``: the variables older than ``lag_s`` behind
+the newest keyframe are eliminated from the factors that touch them, linearised at the current
+estimate, and what they knew about the rest stays as linear factors (``LinearContainerFactor``);
+a new iSAM2 starts from the remaining factors. So the cost of an update follows the window, not the
+length of the run.
+
+Why not gtsam's ``IncrementalFixedLagSmoother``, which does this at every update inside the Bayes
+tree: on the ``paper`` log it ran away in the turns (keyframe corrections growing from 0.15 m to
+12 m), in settings where the same graph with no marginalisation at all stayed within 0.35 m (see
+docs/isam2_design.md). Its marginalisation has known defects (gtsam pull requests 1795, 1890).
 
 The latest estimate of every variable ever in the window is kept (:attr:`poses`, :attr:`points`):
 a marginalised variable keeps the value it had when it left.
@@ -24,20 +34,37 @@ class GraphUpdateError(DemGraphError):
 
 
 class KeyframeGraph:
-    def __init__(self, T_world_body_0: np.ndarray, P0: np.ndarray, t0_s: float, lag_s: float, relinearize_threshold: float = 0.01, relinearize_skip: int = 1):
+    def __init__(
+        self,
+        T_world_body_0: np.ndarray,
+        P0: np.ndarray,
+        t0_s: float,
+        lag_s: float,
+        relinearize_threshold: float = 0.01,
+        relinearize_skip: int = 1,
+        marginalize_every_s: float | None = None,
+    ):
         self._params = gtsam.ISAM2Params()
         self._params.setRelinearizeThreshold(relinearize_threshold)
         self._params.relinearizeSkip = relinearize_skip
         self.lag_s = float(lag_s)
-        self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, self._params)
+        self.marginalize_every_s = 0.5 * self.lag_s if marginalize_every_s is None else float(marginalize_every_s)
         self.poses: dict[int, np.ndarray] = {}  # keyframe index -> T_world_body, latest estimate
         self.points: dict[int, np.ndarray] = {}  # landmark -> X_world, latest estimate
         self.keyframe_t_s: list[float] = []
-        self._in_window: set[int] = set()  # landmarks whose variable is still in the smoother
+        self.marginalizations = 0
+        self._names: dict[int, tuple[str, int]] = {}  # gtsam key -> ("x", keyframe) or ("l", landmark)
+        self._new_isam()
         self._clear_pending()
         k = self.add_keyframe(t0_s, T_world_body_0)
         self._prior_on_pose(k, T_world_body_0, P0)
         self.update()
+
+    def _new_isam(self) -> None:
+        self.isam = gtsam.ISAM2(self._params)
+        self._factors = gtsam.NonlinearFactorGraph()  # every factor the current iSAM2 holds
+        self._stamps: dict[int, float] = {}  # key -> time of the variable (in the window)
+        self._in_window: set[int] = set()  # landmarks whose variable is in the smoother
 
     # --- building the next update -----------------------------------------------------------
     @property
@@ -51,19 +78,21 @@ class KeyframeGraph:
         k = len(self.keyframe_t_s)
         self.keyframe_t_s.append(float(t_s))
         self._new_values.insert(X(k), gtsam.Pose3(np.asarray(T_world_body_guess, dtype=float)))
-        self._stamps.insert((X(k), float(t_s)))
+        self._new_stamps[X(k)] = float(t_s)
+        self._names[X(k)] = ("x", k)
         return k
 
     def add_point(self, landmark: int, X_world_guess: np.ndarray) -> None:
         """A new landmark variable, stamped with the newest keyframe's time."""
         self._new_values.insert(L(landmark), gtsam.Point3(*np.asarray(X_world_guess, dtype=float)))
-        self._stamps.insert((L(landmark), self.keyframe_t_s[-1]))
+        self._new_stamps[L(landmark)] = self.keyframe_t_s[-1]
+        self._names[L(landmark)] = ("l", int(landmark))
         self.points[int(landmark)] = np.array(X_world_guess, dtype=float)
         self._in_window.add(int(landmark))
 
     def observed(self, landmark: int) -> None:
         """Stamp a landmark with the newest keyframe's time (it was measured there)."""
-        self._stamps.insert((L(landmark), self.keyframe_t_s[-1]))
+        self._new_stamps[L(landmark)] = self.keyframe_t_s[-1]
 
     def add_factor(self, factor: gtsam.NonlinearFactor) -> None:
         self._new_factors.add(factor)
@@ -71,10 +100,14 @@ class KeyframeGraph:
     def in_window(self, landmark: int) -> bool:
         return int(landmark) in self._in_window
 
+    def timestamps(self) -> dict[int, float]:
+        """Every variable in the window (gtsam key) with its time, seconds."""
+        return dict(self._stamps)
+
     def _clear_pending(self) -> None:
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
-        self._stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        self._new_stamps: dict[int, float] = {}
 
     def _prior_on_pose(self, k: int, T_world_body: np.ndarray, P: np.ndarray) -> None:
         T = gtsam.Pose3(np.asarray(T_world_body, dtype=float))
@@ -84,32 +117,88 @@ class KeyframeGraph:
     def update(self) -> None:
         """One iSAM2 update with what was added since the last one; refreshes the estimates."""
         try:
-            self.smoother.update(self._new_factors, self._new_values, self._stamps)
+            self.isam.update(self._new_factors, self._new_values)
         except RuntimeError as exc:  # gtsam reports an indeterminate system or a missing key this way
             text = one_line(exc)  # with the variable gtsam names
-            raise GraphUpdateError(f"the graph update at keyframe {self.last_keyframe} (t = {self.keyframe_t_s[-1]:.3f} s) failed: {text}") from None
-        finally:
             self._clear_pending()
-        values = self.smoother.calculateEstimate()
-        in_window = set()
-        for key in values.keys():
-            sym = gtsam.Symbol(key)
-            if sym.chr() == ord("x"):
-                self.poses[sym.index()] = values.atPose3(key).matrix()
+            raise GraphUpdateError(f"the graph update at keyframe {self.last_keyframe} (t = {self.keyframe_t_s[-1]:.3f} s) failed: {text}") from None
+        self._factors.push_back(self._new_factors)
+        self._stamps.update(self._new_stamps)
+        self._clear_pending()
+        self._read_estimate()
+
+    def _read_estimate(self, values: gtsam.Values | None = None) -> None:
+        """Refresh the kept estimates of every variable in the window (from ``values`` if given)."""
+        values = self.isam.calculateEstimate() if values is None else values
+        for key in self._stamps:
+            kind, index = self._names[key]
+            if kind == "x":
+                self.poses[index] = values.atPose3(key).matrix()
             else:
-                self.points[sym.index()] = values.atPoint3(key)
-                in_window.add(sym.index())
-        self._in_window = in_window
+                self.points[index] = values.atPoint3(key)
+        self._in_window = {self._names[key][1] for key in self._stamps if self._names[key][0] == "l"}
+
+    @property
+    def marginalization_due(self) -> bool:
+        """The window spans more than ``lag_s + marginalize_every_s``."""
+        return bool(self._stamps) and min(self._stamps.values()) < self.keyframe_t_s[-1] - self.lag_s - self.marginalize_every_s
+
+    def marginalize(self) -> int:
+        """Marginalise every variable older than ``lag_s`` behind the newest keyframe; returns how many.
+
+        The factors touching them are linearised at the current estimate and the old variables
+        eliminated; the remaining Gaussian factors on the variables they shared with the window
+        enter a new iSAM2 as ``LinearContainerFactor``s, with every factor not touching them."""
+        t_cut = self.keyframe_t_s[-1] - self.lag_s
+        old = {key for key, t in self._stamps.items() if t < t_cut}
+        if not old:
+            return 0
+        values = self.isam.calculateEstimate()
+        self._read_estimate(values)  # what the marginalised variables keep
+        touching, kept = gtsam.NonlinearFactorGraph(), gtsam.NonlinearFactorGraph()
+        for i in range(self._factors.size()):
+            f = self._factors.at(i)
+            if f is None:
+                continue
+            (touching if any(key in old for key in f.keys()) else kept).add(f)
+        try:
+            _, marginal = touching.linearize(values).eliminatePartialMultifrontal(gtsam.KeyVector(sorted(old)))
+        except RuntimeError as exc:
+            raise GraphUpdateError(f"marginalising the window before t = {t_cut:.3f} s failed: {one_line(exc)}") from None
+        for i in range(marginal.size()):
+            f = marginal.at(i)
+            if f is not None and len(f.keys()) > 0:
+                kept.add(gtsam.LinearContainerFactor(f, values))
+        kept_values = gtsam.Values()
+        for key in self._stamps:
+            if key not in old:
+                if self._names[key][0] == "x":
+                    kept_values.insert(key, values.atPose3(key))
+                else:
+                    kept_values.insert(key, values.atPoint3(key))
+        stamps = {key: t for key, t in self._stamps.items() if key not in old}
+        for key in old:
+            del self._names[key]
+        self._new_isam()
+        try:
+            self.isam.update(kept, kept_values)
+        except RuntimeError as exc:
+            raise GraphUpdateError(f"restarting iSAM2 after marginalising the window before t = {t_cut:.3f} s failed: {one_line(exc)}") from None
+        self._factors = kept
+        self._stamps = stamps
+        self._read_estimate()
+        self.marginalizations += 1
+        return len(old)
 
     def restart(self, T_world_body: np.ndarray, P: np.ndarray, point_priors: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
         """Start a new smoother from the newest keyframe after a failed update: its pose and the
         given points (landmark -> (X_world, 3x3 covariance)) enter with priors at their estimates;
         what the failed update held is dropped. Keyframe numbering and kept estimates continue."""
-        self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, self._params)
+        self._new_isam()
         self._clear_pending()
         k = self.last_keyframe
         self._new_values.insert(X(k), gtsam.Pose3(np.asarray(T_world_body, dtype=float)))
-        self._stamps.insert((X(k), self.keyframe_t_s[-1]))
+        self._new_stamps[X(k)] = self.keyframe_t_s[-1]
         self._prior_on_pose(k, T_world_body, P)
         for lm, (X_world, Sigma) in point_priors.items():
             self.add_point(lm, X_world)
@@ -118,7 +207,7 @@ class KeyframeGraph:
 
     def pose_covariance(self, k: int) -> np.ndarray:
         """Marginal covariance of keyframe ``k``'s pose (6x6, [rotation, translation], right perturbation)."""
-        return np.asarray(self.smoother.marginalCovariance(X(k)))
+        return np.asarray(self.isam.marginalCovariance(X(k)))
 
 
 __all__ = ["GraphUpdateError", "KeyframeGraph"]

@@ -53,7 +53,7 @@ def compare_at_keyframe(est: Isam2Slam, study: SearchRegionStudy, points_per_key
     chosen = rng.choice(in_graph, size=min(points_per_keyframe, len(in_graph)), replace=False)
     _, S_approx, in_front = est.search_regions(est.T)
     _, Hp, Hx, _ = project_with_jacobians(est.T, live.X, est.rig.camera_model, est.rig.T_body_cam)
-    isam = g.smoother.getISAM2()
+    isam = g.isam
     R = est.config.frontend.sigma_px**2 * np.eye(2)
     study.keyframes += 1
     for i in chosen:
