@@ -184,12 +184,9 @@ class EkfSlam(FrameDrivenEstimator):
     def _drop_points(self) -> np.ndarray:
         """Archive the points that left the view or were lost; returns the pixels of those kept (n,2)."""
         st = self.state
-        uv, reasons = self.frontend.drop_reasons(st.point_ids, st.points_xyz, st.T_world_body)
-        remove = np.array([r is not None for r in reasons], dtype=bool)
-        for i in np.flatnonzero(remove):
-            self._archive(int(i), reasons[i])
-        st.remove_points(remove)
-        return uv[~remove]
+        keep, uv = self.frontend.drop_points(st.point_ids, st.points_xyz, st.T_world_body, self._archive)
+        st.remove_points(~keep)
+        return uv
 
     def _speed_mps(self) -> float | None:
         return float(np.linalg.norm(self.state.v_body[3:])) if len(self.history) > 2 else None

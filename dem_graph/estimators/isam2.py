@@ -161,7 +161,10 @@ class Isam2Slam(FrameDrivenEstimator):
         # motion covariance since
         self._anchor_T, self._anchor_P, self._anchor_Q = self.T.copy(), P0.copy(), np.zeros((6, 6))
         self._anchor_t_s = self.t_s
-        self._marginal_due: int | None = None
+        self._marginal_due = False  # the last keyframe's marginal is to be taken at the next frame that is not a keyframe
+        # with every frame a keyframe there is no frame in between to spread the graph's other
+        # work over (cutting the window, the marginal): it is done in the keyframe's frame
+        self._graph_work_in_keyframe = c.keyframe_every == 1
         self.frames_since_kf = 0
         self.live = LivePoints()
         self.history = PoseHistory(window=c.keyframe_every + 5)
@@ -238,10 +241,11 @@ class Isam2Slam(FrameDrivenEstimator):
         elif self.graph.marginalization_due:
             tg = time.perf_counter()
             self._marginalize()
+            self._take_graph_estimates()
             graph_s += time.perf_counter() - tg
-        elif self._marginal_due is not None:
+        elif self._marginal_due:
             tg = time.perf_counter()
-            self._take_marginal(self._marginal_due)
+            self._take_marginal()
             graph_s += time.perf_counter() - tg
         timing["map"], timing["graph"] = map_s, graph_s
         timing["total"] = time.perf_counter() - t0
@@ -430,7 +434,7 @@ class Isam2Slam(FrameDrivenEstimator):
         self.history.correct(g.poses[k] @ invert(self.T))
         self.T = g.poses[k]
         self.history.append(t_s, self.T)
-        if c.keyframe_every == 1 and g.marginalization_due:  # no frame in between to do it
+        if self._graph_work_in_keyframe and g.marginalization_due:
             self._marginalize()
         self._take_graph_estimates()
         self.T_kf = self.T.copy()
@@ -440,22 +444,21 @@ class Isam2Slam(FrameDrivenEstimator):
         if every <= 0:
             self._anchor_T, self._anchor_P, self._anchor_Q = self.T.copy(), self.P_loc.copy(), np.zeros((6, 6))
         elif t_s - self._anchor_t_s >= every:
-            # taken at the next frame that is not a keyframe, to spread the work; at once when
-            # overdue or when every frame is a keyframe
-            self._marginal_due = k
-            if c.keyframe_every == 1 or t_s - self._anchor_t_s >= 2 * every:
-                self._take_marginal(k)
+            # taken at the next frame that is not a keyframe, to spread the work; at once when overdue
+            self._marginal_due = True
+            if self._graph_work_in_keyframe or t_s - self._anchor_t_s >= 2 * every:
+                self._take_marginal()
         for hook in self.keyframe_hooks:
             hook(self)
 
     def _marginalize(self) -> None:
-        """Cut the graph's window back to the lag; restart the smoother if that fails."""
+        """Cut the graph's window back to the lag; restart the smoother if that fails (the caller
+        then takes the graph's estimates)."""
         try:
             self.graph.marginalize()
         except GraphUpdateError as exc:
             log.warning("%s; restarting the smoother from the current estimates", exc)
             self._restart_graph(self.T_kf)  # the current frame's covariance: a little wider than the keyframe's
-        self._take_graph_estimates()
 
     def _restart_graph(self, T_world_body_keyframe: np.ndarray) -> None:
         self.frontend.counters["graph_restarts"] += 1
@@ -479,13 +482,15 @@ class Isam2Slam(FrameDrivenEstimator):
         P = A @ self._anchor_P @ A.T + self._anchor_Q
         return 0.5 * (P + P.T)
 
-    def _take_marginal(self, k: int) -> None:
-        """Keyframe ``k``'s marginal pose covariance from the smoother becomes the output's anchor."""
-        self._marginal_due = None
+    def _take_marginal(self) -> None:
+        """The last keyframe's marginal pose covariance from the smoother becomes the output's
+        anchor, with the motion covariance since."""
+        self._marginal_due = False
         g = self.graph
+        k = g.last_keyframe
         self._anchor_T, self._anchor_P = g.poses[k].copy(), g.pose_covariance(k)
         self._anchor_t_s = g.keyframe_t_s[k]
-        self._anchor_Q = self.Q_kf.copy() if k == g.last_keyframe else np.zeros((6, 6))
+        self._anchor_Q = self.Q_kf.copy()
 
     # --- map management ----------------------------------------------------------------------
     def _point_covariance_world(self, i: int) -> np.ndarray:
@@ -503,13 +508,9 @@ class Isam2Slam(FrameDrivenEstimator):
         self._archived.append((pid, track.kind, self._point_covariance_world(i), track.n_tracked, track.created_t_s))
 
     def _drop_points(self) -> np.ndarray:
-        live = self.live
-        uv, reasons = self.frontend.drop_reasons(live.ids, live.X, self.T)
-        remove = np.array([r is not None for r in reasons], dtype=bool)
-        for i in np.flatnonzero(remove):
-            self._archive(int(i), reasons[i])
-        live.keep(~remove)
-        return uv[~remove]
+        keep, uv = self.frontend.drop_points(self.live.ids, self.live.X, self.T, self._archive)
+        self.live.keep(keep)
+        return uv
 
     # --- results -----------------------------------------------------------------------------
     def smoothed_poses(self) -> np.ndarray:

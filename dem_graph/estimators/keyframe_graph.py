@@ -42,18 +42,16 @@ class KeyframeGraph:
         lag_s: float,
         relinearize_threshold: float = 0.01,
         relinearize_skip: int = 1,
-        marginalize_every_s: float | None = None,
+        marginalize_every_s: float = 0.5,
     ):
         self._params = gtsam.ISAM2Params()
         self._params.setRelinearizeThreshold(relinearize_threshold)
         self._params.relinearizeSkip = relinearize_skip
         self.lag_s = float(lag_s)
-        self.marginalize_every_s = 0.5 * self.lag_s if marginalize_every_s is None else float(marginalize_every_s)
+        self.marginalize_every_s = float(marginalize_every_s)
         self.poses: dict[int, np.ndarray] = {}  # keyframe index -> T_world_body, latest estimate
         self.points: dict[int, np.ndarray] = {}  # landmark -> X_world, latest estimate
         self.keyframe_t_s: list[float] = []
-        self.marginalizations = 0
-        self._names: dict[int, tuple[str, int]] = {}  # gtsam key -> ("x", keyframe) or ("l", landmark)
         self._new_isam()
         self._clear_pending()
         k = self.add_keyframe(t0_s, T_world_body_0)
@@ -63,8 +61,9 @@ class KeyframeGraph:
     def _new_isam(self) -> None:
         self.isam = gtsam.ISAM2(self._params)
         self._factors = gtsam.NonlinearFactorGraph()  # every factor the current iSAM2 holds
-        self._stamps: dict[int, float] = {}  # key -> time of the variable (in the window)
-        self._in_window: set[int] = set()  # landmarks whose variable is in the smoother
+        # the variables in the window with their times, seconds: keyframe -> t, landmark -> t
+        self._pose_t: dict[int, float] = {}
+        self._point_t: dict[int, float] = {}
 
     # --- building the next update -----------------------------------------------------------
     @property
@@ -77,37 +76,39 @@ class KeyframeGraph:
             raise DemGraphError(f"keyframe times must increase: {t_s} after {self.keyframe_t_s[-1]}")
         k = len(self.keyframe_t_s)
         self.keyframe_t_s.append(float(t_s))
-        self._new_values.insert(X(k), gtsam.Pose3(np.asarray(T_world_body_guess, dtype=float)))
-        self._new_stamps[X(k)] = float(t_s)
-        self._names[X(k)] = ("x", k)
+        self._insert_pose(k, T_world_body_guess)
         return k
+
+    def _insert_pose(self, k: int, T_world_body: np.ndarray) -> None:
+        self._new_values.insert(X(k), gtsam.Pose3(np.asarray(T_world_body, dtype=float)))
+        self._new_pose_t[k] = self.keyframe_t_s[k]
 
     def add_point(self, landmark: int, X_world_guess: np.ndarray) -> None:
         """A new landmark variable, stamped with the newest keyframe's time."""
         self._new_values.insert(L(landmark), gtsam.Point3(*np.asarray(X_world_guess, dtype=float)))
-        self._new_stamps[L(landmark)] = self.keyframe_t_s[-1]
-        self._names[L(landmark)] = ("l", int(landmark))
+        self._new_point_t[int(landmark)] = self.keyframe_t_s[-1]
         self.points[int(landmark)] = np.array(X_world_guess, dtype=float)
-        self._in_window.add(int(landmark))
 
     def observed(self, landmark: int) -> None:
         """Stamp a landmark with the newest keyframe's time (it was measured there)."""
-        self._new_stamps[L(landmark)] = self.keyframe_t_s[-1]
+        self._new_point_t[int(landmark)] = self.keyframe_t_s[-1]
 
     def add_factor(self, factor: gtsam.NonlinearFactor) -> None:
         self._new_factors.add(factor)
 
     def in_window(self, landmark: int) -> bool:
-        return int(landmark) in self._in_window
+        """The landmark is a variable of the smoother (or will be at the next update)."""
+        return int(landmark) in self._point_t or int(landmark) in self._new_point_t
 
     def timestamps(self) -> dict[int, float]:
         """Every variable in the window (gtsam key) with its time, seconds."""
-        return dict(self._stamps)
+        return {**{X(k): t for k, t in self._pose_t.items()}, **{L(j): t for j, t in self._point_t.items()}}
 
     def _clear_pending(self) -> None:
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
-        self._new_stamps: dict[int, float] = {}
+        self._new_pose_t: dict[int, float] = {}
+        self._new_point_t: dict[int, float] = {}
 
     def _prior_on_pose(self, k: int, T_world_body: np.ndarray, P: np.ndarray) -> None:
         T = gtsam.Pose3(np.asarray(T_world_body, dtype=float))
@@ -123,25 +124,25 @@ class KeyframeGraph:
             self._clear_pending()
             raise GraphUpdateError(f"the graph update at keyframe {self.last_keyframe} (t = {self.keyframe_t_s[-1]:.3f} s) failed: {text}") from None
         self._factors.push_back(self._new_factors)
-        self._stamps.update(self._new_stamps)
+        self._pose_t.update(self._new_pose_t)
+        self._point_t.update(self._new_point_t)
         self._clear_pending()
         self._read_estimate()
 
-    def _read_estimate(self, values: gtsam.Values | None = None) -> None:
-        """Refresh the kept estimates of every variable in the window (from ``values`` if given)."""
+    def _read_estimate(self, values: gtsam.Values | None = None, poses=None, points=None) -> None:
+        """Refresh the kept estimates of the given keyframes and landmarks (default: the whole
+        window) from ``values`` (default: the smoother's estimate)."""
         values = self.isam.calculateEstimate() if values is None else values
-        for key in self._stamps:
-            kind, index = self._names[key]
-            if kind == "x":
-                self.poses[index] = values.atPose3(key).matrix()
-            else:
-                self.points[index] = values.atPoint3(key)
-        self._in_window = {self._names[key][1] for key in self._stamps if self._names[key][0] == "l"}
+        for k in self._pose_t if poses is None else poses:
+            self.poses[k] = values.atPose3(X(k)).matrix()
+        for j in self._point_t if points is None else points:
+            self.points[j] = values.atPoint3(L(j))
 
     @property
     def marginalization_due(self) -> bool:
         """The window spans more than ``lag_s + marginalize_every_s``."""
-        return bool(self._stamps) and min(self._stamps.values()) < self.keyframe_t_s[-1] - self.lag_s - self.marginalize_every_s
+        oldest = min(min(self._pose_t.values(), default=np.inf), min(self._point_t.values(), default=np.inf))
+        return oldest < self.keyframe_t_s[-1] - self.lag_s - self.marginalize_every_s
 
     def marginalize(self) -> int:
         """Marginalise every variable older than ``lag_s`` behind the newest keyframe; returns how many.
@@ -150,11 +151,13 @@ class KeyframeGraph:
         eliminated; the remaining Gaussian factors on the variables they shared with the window
         enter a new iSAM2 as ``LinearContainerFactor``s, with every factor not touching them."""
         t_cut = self.keyframe_t_s[-1] - self.lag_s
-        old = {key for key, t in self._stamps.items() if t < t_cut}
-        if not old:
+        old_poses = [k for k, t in self._pose_t.items() if t < t_cut]
+        old_points = [j for j, t in self._point_t.items() if t < t_cut]
+        if not old_poses and not old_points:
             return 0
         values = self.isam.calculateEstimate()
-        self._read_estimate(values)  # what the marginalised variables keep
+        self._read_estimate(values, old_poses, old_points)  # what the marginalised variables keep
+        old = {X(k) for k in old_poses} | {L(j) for j in old_points}
         touching, kept = gtsam.NonlinearFactorGraph(), gtsam.NonlinearFactorGraph()
         for i in range(self._factors.size()):
             f = self._factors.at(i)
@@ -169,25 +172,24 @@ class KeyframeGraph:
             f = marginal.at(i)
             if f is not None and len(f.keys()) > 0:
                 kept.add(gtsam.LinearContainerFactor(f, values))
+        for k in old_poses:
+            del self._pose_t[k]
+        for j in old_points:
+            del self._point_t[j]
         kept_values = gtsam.Values()
-        for key in self._stamps:
-            if key not in old:
-                if self._names[key][0] == "x":
-                    kept_values.insert(key, values.atPose3(key))
-                else:
-                    kept_values.insert(key, values.atPoint3(key))
-        stamps = {key: t for key, t in self._stamps.items() if key not in old}
-        for key in old:
-            del self._names[key]
+        for k in self._pose_t:
+            kept_values.insert(X(k), values.atPose3(X(k)))
+        for j in self._point_t:
+            kept_values.insert(L(j), values.atPoint3(L(j)))
+        pose_t, point_t = self._pose_t, self._point_t
         self._new_isam()
+        self._pose_t, self._point_t = pose_t, point_t
         try:
             self.isam.update(kept, kept_values)
         except RuntimeError as exc:
             raise GraphUpdateError(f"restarting iSAM2 after marginalising the window before t = {t_cut:.3f} s failed: {one_line(exc)}") from None
         self._factors = kept
-        self._stamps = stamps
         self._read_estimate()
-        self.marginalizations += 1
         return len(old)
 
     def restart(self, T_world_body: np.ndarray, P: np.ndarray, point_priors: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
@@ -197,8 +199,7 @@ class KeyframeGraph:
         self._new_isam()
         self._clear_pending()
         k = self.last_keyframe
-        self._new_values.insert(X(k), gtsam.Pose3(np.asarray(T_world_body, dtype=float)))
-        self._new_stamps[X(k)] = self.keyframe_t_s[-1]
+        self._insert_pose(k, T_world_body)
         self._prior_on_pose(k, T_world_body, P)
         for lm, (X_world, Sigma) in point_priors.items():
             self.add_point(lm, X_world)

@@ -262,6 +262,16 @@ class FrontEnd:
             out.append(NewPoint(point_id, CAMERA, p, Sigma))
         return out
 
+    def drop_points(self, point_ids, X_world: np.ndarray, T_world_body: np.ndarray, archive) -> tuple[np.ndarray, np.ndarray]:
+        """Which live points to drop from the pose ``T_world_body`` (:meth:`drop_reasons`): calls
+        ``archive(i, reason)`` for each, in index order; returns the mask of the points kept and
+        their pixels (m,2)."""
+        uv, reasons = self.drop_reasons(point_ids, X_world, T_world_body)
+        keep = np.array([r is None for r in reasons], dtype=bool)
+        for i in np.flatnonzero(~keep):
+            archive(int(i), reasons[i])
+        return keep, uv[keep]
+
     def drop_reasons(self, point_ids, X_world: np.ndarray, T_world_body: np.ndarray) -> tuple[np.ndarray, list[str | None]]:
         """Which live points to drop from the pose ``T_world_body``: per point, ``"behind"``,
         ``"left_image"``, ``"lost"`` (too many misses) or None (kept); and every point's pixel (n,2)."""
