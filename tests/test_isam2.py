@@ -211,12 +211,12 @@ def test_a_failed_graph_update_restarts_the_smoother(smoke_log, monkeypatch):
     real = keyframe_graph.KeyframeGraph.update
     calls = {"n": 0}
 
-    def failing_once(self):
+    def failing_once(self, iterations=1):
         calls["n"] += 1
         if calls["n"] == 8:
             self._new_factors = keyframe_graph.gtsam.NonlinearFactorGraph()
             raise keyframe_graph.GraphUpdateError("the graph update at keyframe 7 failed: Indeterminant linear system")
-        return real(self)
+        return real(self, iterations)
 
     monkeypatch.setattr(keyframe_graph.KeyframeGraph, "update", failing_once)
     run = _run(smoke_log)

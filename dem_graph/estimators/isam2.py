@@ -30,17 +30,25 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import Literal
 
-import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
 from pydantic import Field
 
 from dem_graph.config_types import StrictModel
 from dem_graph.datasets.events import CameraFrame, LaserScan
+from dem_graph.errors import DemGraphError
 from dem_graph.estimators.base import EstimatorResult, FrameDrivenEstimator, FrameRecord
-from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
-from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
+from dem_graph.estimators.graph_worker import (
+    GraphResult,
+    GraphSetup,
+    InProcessGraph,
+    KeyframeMessage,
+    NewLandmark,
+    ProcessGraph,
+    RestartMessage,
+)
+from dem_graph.estimators.keyframe_graph import KeyframeGraph
 from dem_graph.estimators.measurement_log import MeasurementLog
 from dem_graph.estimators.odometry import OdometryIntegrator
 from dem_graph.estimators.pose_update import project_with_jacobians, update_pose
@@ -49,7 +57,7 @@ from dem_graph.frontend.frontend import FrontEnd, NewPoint
 from dem_graph.frontend.pose_history import PoseHistory
 from dem_graph.geometry.lie import adjoint, local, retract, skew
 from dem_graph.geometry.rig import SensorRig
-from dem_graph.geometry.se3 import invert, transform_points
+from dem_graph.geometry.se3 import invert, nearest_pose, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +73,11 @@ class Isam2Options(StrictModel):
     )
     relinearize_threshold: float = Field(0.01, gt=0, description="iSAM2 relinearises a variable whose update exceeds this")
     relinearize_skip: int = Field(1, ge=1, description="iSAM2 checks for relinearisation every this many updates")
+    optimizer: Literal["dogleg", "gauss_newton"] = Field(
+        "dogleg",
+        description="iSAM2's step: dogleg (a trust region) or plain Gauss-Newton. The window's absolute height and tilt are known only to a few tenths of a metre "
+        "and degree (nothing observes them but the odometry), and Gauss-Newton steps oscillated along them and jumped in the turns of paper",
+    )
     keyframe_weighting: bool = Field(
         True, description="a keyframe observation carries the information of the frames that tracked the point since its last keyframe observation (sigma_px / sqrt(n))"
     )
@@ -78,6 +91,11 @@ class Isam2Options(StrictModel):
     outlier_chi2: float = Field(9.21, gt=0, description="an observation whose normalised residual after the frame's pose update exceeds this (chi-square, 2 dof; 9.21 = 99 %) stays out of the graph")
     pose_covariance_every_s: float = Field(
         1.0, ge=0, description="take a keyframe pose's marginal covariance from the smoother (15-35 ms) at most this often, seconds; in between it is carried by odometry; 0: never (the covariance relative to the map)"
+    )
+    graph_process: bool = Field(
+        False,
+        description="run the graph (iSAM2 updates, the window's cut, marginals) in a second process, on another core: a frame then costs the front end's time, "
+        "and the graph's results reach the front end one or more keyframes later (a run then depends on the timing); false: each keyframe's update ends in its own frame",
     )
     batch_max_iterations: int = Field(10, ge=1, description="isam2-batch: Levenberg-Marquardt iterations at most")
     batch_relative_error_tol: float = Field(1e-3, gt=0, description="isam2-batch: stop when the error falls by less than this fraction")
@@ -145,7 +163,6 @@ class Isam2Slam(FrameDrivenEstimator):
         self.frontend = FrontEnd(c.frontend, rig)
         self.use_odometry = c.motion.uses_odometry(has_odometry)
         self.wait_for_odometry = c.motion.wait_for_odometry
-        self._K = calibration(rig.camera_model)
         self._sigma_px = c.frontend.sigma_px
         self._gate = self.frontend.tracker.gate_chi2
         self.t_s = float(t_start_s)
@@ -153,18 +170,32 @@ class Isam2Slam(FrameDrivenEstimator):
         P0 = np.eye(6) * c.motion.initial_sigma_pose**2
         self._T0, self._P0 = self.T.copy(), P0
         self.P_loc = P0.copy()  # pose covariance relative to the map (search regions)
-        self.graph = KeyframeGraph(self.T, P0, self.t_s, c.lag_s, c.relinearize_threshold, c.relinearize_skip, c.marginalize_every_s)
-        self.T_kf = self.T.copy()  # the last keyframe's pose, smoothed when it was made
+        setup = GraphSetup(
+            self.T.copy(), P0, self.t_s, c.lag_s, c.relinearize_threshold, c.relinearize_skip, c.marginalize_every_s, c.optimizer,
+            rig.camera_model, np.array(rig.T_body_cam, dtype=float), c.frontend.camera_point_sigma_px, c.split_link_sigma_m, c.robust,
+        )  # fmt: skip
+        self._graph = ProcessGraph(setup) if c.graph_process else InProcessGraph(setup)
+        # what the front end knows of the graph: every keyframe's time, the latest estimates of
+        # keyframes and landmarks, and which landmarks it has marginalised
+        self.keyframe_t_s: list[float] = [self.t_s]
+        self.poses: dict[int, np.ndarray] = {0: self.T.copy()}
+        self.points: dict[int, np.ndarray] = {}
+        self._landmark_keyframe: dict[int, int] = {}  # landmark -> the keyframe whose message started it
+        self._gone: set[int] = set()  # landmarks the graph has marginalised
+        # keyframes sent whose result is not back: the front end's pose for each (moved with every
+        # correction since) and the motion covariance since it
+        self._sent_T: dict[int, np.ndarray] = {}
+        self._Q_since: dict[int, np.ndarray] = {}
+        self._info_pending: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # keyframe -> its observations' (landmarks, 3x3 information)
+        self._info_next = None
+        self._graph_lag: list[int] = []  # per result: keyframes sent since the one it answers
+        self.T_kf = self.T.copy()  # the last keyframe's pose
         self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))  # motion since the last keyframe
-        # the output covariance rides on the latest keyframe whose marginal is known (it is
-        # computed one frame after its keyframe, to spread the work): its pose, its marginal and the
-        # motion covariance since
+        # the output covariance rides on the latest keyframe whose marginal is known: its pose, its
+        # marginal and the motion covariance since
         self._anchor_T, self._anchor_P, self._anchor_Q = self.T.copy(), P0.copy(), np.zeros((6, 6))
         self._anchor_t_s = self.t_s
-        self._marginal_due = False  # the last keyframe's marginal is to be taken at the next frame that is not a keyframe
-        # with every frame a keyframe there is no frame in between to spread the graph's other
-        # work over (cutting the window, the marginal): it is done in the keyframe's frame
-        self._graph_work_in_keyframe = c.keyframe_every == 1
+        self._marginal_asked = False  # a keyframe's marginal has been asked for and is not back
         self.frames_since_kf = 0
         self.live = LivePoints()
         self.history = PoseHistory(window=c.keyframe_every + 5)
@@ -184,17 +215,29 @@ class Isam2Slam(FrameDrivenEstimator):
         self._landmark_of: dict[int, int] = {}  # point id -> its current landmark
         self._pending_links: list[tuple[int, int, np.ndarray]] = []  # (old, new landmark, old covariance)
         self.batch_result = None
-        self.keyframe_hooks: list = []  # called as hook(self) after each keyframe's update (studies)
+        self.keyframe_hooks: list = []  # called as hook(self) after each keyframe's result is taken, in-process graph only (studies)
+
+    @property
+    def graph(self) -> KeyframeGraph:
+        """The smoother itself, when it runs in this process (studies and tests)."""
+        if not isinstance(self._graph, InProcessGraph):
+            raise DemGraphError("the graph runs in a second process (graph_process: true); its smoother is not reachable from here")
+        return self._graph.worker.graph
 
     def finish(self) -> None:
         super().finish()
+        pending, (poses, points, _) = self._graph.finish()
+        self._take_results(pending, restart=False)
+        self.poses.update(poses)
+        self.points.update(points)
+        self._graph.close()
         if self.log is not None and self._frames:
             from dem_graph.estimators.batch import smooth_batch
 
             c = self.config
             self.batch_result = smooth_batch(
                 # every frame's observation, with AR(1) errors: each carries (1 - rho) / (1 + rho) of an independent one's information
-                self.log, self.rig, self._T0, self._P0, self.smoothed_poses(), self.graph.points,
+                self.log, self.rig, self._T0, self._P0, self.smoothed_poses(), self.points,
                 self._sigma_px * np.sqrt((1 + c.track_correlation) / (1 - c.track_correlation)), c.frontend.camera_point_sigma_px,
                 robust=c.robust, max_iterations=c.batch_max_iterations, relative_error_tol=c.batch_relative_error_tol,
             )
@@ -225,7 +268,7 @@ class Isam2Slam(FrameDrivenEstimator):
         graph_s = 0.0
         if is_keyframe:
             tg = time.perf_counter()
-            self._keyframe_observations(idx[inlier], uv[inlier], self._H_point[inlier])
+            observations = self._keyframe_observations(idx[inlier], uv[inlier], self._H_point[inlier])
             graph_s = time.perf_counter() - tg
         tm = time.perf_counter()
         self.history.append(event.t_s, self.T)
@@ -235,21 +278,18 @@ class Isam2Slam(FrameDrivenEstimator):
             tg = time.perf_counter()
             new = self._new_points(event.image, event.t_s, live_uv)
             tn = time.perf_counter()
-            self._finish_keyframe(new, event.t_s)
+            self._send_keyframe(event.t_s, observations, new)
             graph_s += time.perf_counter() - tn
             map_s += tn - tg
-        elif self.graph.marginalization_due:
-            tg = time.perf_counter()
-            self._marginalize()
-            self._take_graph_estimates()
-            graph_s += time.perf_counter() - tg
-        elif self._marginal_due:
-            tg = time.perf_counter()
-            self._take_marginal()
-            graph_s += time.perf_counter() - tg
+        tg = time.perf_counter()
+        timing["graph_worker"] = self._take_results(self._graph.results())
+        graph_s += time.perf_counter() - tg
+        if is_keyframe and isinstance(self._graph, InProcessGraph):
+            for hook in self.keyframe_hooks:
+                hook(self)
         timing["map"], timing["graph"] = map_s, graph_s
         timing["total"] = time.perf_counter() - t0
-        k = self.graph.last_keyframe
+        k = len(self.keyframe_t_s) - 1
         self._frame_anchor.append((k, invert(self.T_kf) @ self.T))
         record = FrameRecord(event.t_s, self.T.copy(), self._output_covariance(), len(self.live), int(len(idx)), timing)
         self._frames.append(record)
@@ -273,6 +313,8 @@ class Isam2Slam(FrameDrivenEstimator):
         self.U_kf = self.U_kf @ U
         self.Q_kf = A @ self.Q_kf @ A.T + Q
         self._anchor_Q = A @ self._anchor_Q @ A.T + Q
+        for k, Q_k in self._Q_since.items():
+            self._Q_since[k] = A @ Q_k @ A.T + Q
         self._U_frame, self._Q_frame = U, Q
         self._dt = dt
         self.t_s = t_s
@@ -352,7 +394,7 @@ class Isam2Slam(FrameDrivenEstimator):
             self._next_landmark += 1
             Sigma_old = np.linalg.inv(live.info[i])
             self._pending_links.append((int(old[j]), new, Sigma_old))
-            self.graph.points[new] = self.graph.points[int(old[j])].copy()  # its estimate until the graph has it
+            self.points[new] = self.points[int(old[j])].copy()  # its estimate until the graph has it
             live.landmark[i], live.segment[i] = new, segment
             live.info[i] = np.linalg.inv(Sigma_old + sigma2 * np.eye(3))
             live.n_since_keyframe[i] = 0
@@ -361,53 +403,34 @@ class Isam2Slam(FrameDrivenEstimator):
                 self.log.add_link(int(old[j]), new, self.config.split_link_sigma_m)
         return old
 
-    def _add_pending_links(self) -> None:
-        """New landmarks for the refreshed patches since the last keyframe, each tied to the one
-        before it (or, if that has left the window, held by a prior at its last estimate)."""
-        g = self.graph
-        sigma = self.config.split_link_sigma_m
-        for old, new, Sigma_old in self._pending_links:
-            X_old = g.points[old]
-            g.add_point(new, X_old)
-            if g.in_window(old):
-                g.add_factor(link_factor(L(old), L(new), sigma))
-            else:
-                g.add_factor(gtsam.PriorFactorPoint3(L(new), gtsam.Point3(*X_old), gtsam.noiseModel.Gaussian.Covariance(Sigma_old + sigma**2 * np.eye(3))))
-        self._pending_links = []
-
     # --- keyframes ---------------------------------------------------------------------------
-    def _keyframe_observations(self, idx: np.ndarray, uv: np.ndarray, H_point: np.ndarray) -> None:
-        """A keyframe pose variable, the motion since the last one, and this frame's inlier
-        observations (live indices ``idx``, pixels ``uv``, pixel Jacobians ``H_point`` w.r.t. the points)."""
-        g = self.graph
-        k = g.last_keyframe
-        if self.t_s > g.keyframe_t_s[-1]:  # else: the first frame, at the start pose's time
-            k = g.add_keyframe(self.t_s, self.T)
-            g.add_factor(odometry_factor(X(k - 1), X(k), self.U_kf, self.Q_kf))
-        T_body_cam = self.rig.T_body_cam
+    def _keyframe_observations(self, idx: np.ndarray, uv: np.ndarray, H_point: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """This keyframe's inlier observations (live indices ``idx``, pixels ``uv``, pixel Jacobians
+        ``H_point`` w.r.t. the points) of landmarks still in the graph, as (landmarks, pixels, sigma_px).
+        Their information (the pose held fixed) joins the points' own when the graph's result for
+        the keyframe is back, with the estimate it belongs to."""
         live = self.live
-        self._add_pending_links()
-        keep = np.array([g.in_window(int(lm)) for lm in live.landmark[idx]], dtype=bool)
+        keep = np.array([int(lm) not in self._gone for lm in live.landmark[idx]], dtype=bool)
         idx, uv, H_point = idx[keep], uv[keep], H_point[keep]
         n = np.maximum(live.n_since_keyframe[idx], 1) if self.config.keyframe_weighting else np.ones(len(idx), dtype=np.int64)
         sigma = self._sigma_px / np.sqrt(effective_sample_size(n, self.config.track_correlation))
-        for i, z, s in zip(idx, uv, sigma):
-            lm = int(live.landmark[i])
-            g.add_factor(projection_factor(X(k), L(lm), z, float(s), self._K, T_body_cam, robust=self.config.robust))
-            g.observed(lm)
         live.n_since_keyframe[idx] = 0
-        # the points' information from this observation, the pose held fixed
-        live.info[idx] += np.swapaxes(H_point, 1, 2) @ H_point / (sigma**2)[:, None, None]
+        self._info_next = (live.landmark[idx].copy(), np.swapaxes(H_point, 1, 2) @ H_point / (sigma**2)[:, None, None])
+        return live.landmark[idx].copy(), uv.copy(), sigma
 
     def _new_points(self, image, t_s: float, live_uv: np.ndarray) -> list[NewPoint]:
         scans, self._scans = [s for s in self._scans if s.t_s <= t_s], [s for s in self._scans if s.t_s > t_s]
         return self.frontend.new_points(image, t_s, self.T, scans, self.history, self.live.X, live_uv, self._speed_mps)
 
-    def _finish_keyframe(self, new: list[NewPoint], t_s: float) -> None:
-        """Add the new points, run the iSAM2 update, and take the smoothed estimates."""
-        g = self.graph
-        k = g.last_keyframe
+    def _send_keyframe(self, t_s: float, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint]) -> None:
+        """The keyframe's message to the graph: its pose, the motion since the last one, its
+        observations, the new points with their seeds and the refreshed patches' links."""
         c = self.config
+        k = len(self.keyframe_t_s) - 1
+        if t_s > self.keyframe_t_s[-1]:  # else: the first frame, at the start pose's time
+            k += 1
+            self.keyframe_t_s.append(t_s)
+        new_landmarks = []
         if new:
             R = self.T[:3, :3]
             ids = np.array([p.point_id for p in new])
@@ -416,64 +439,106 @@ class Isam2Slam(FrameDrivenEstimator):
             landmarks = np.arange(self._next_landmark, self._next_landmark + len(new))
             self._next_landmark += len(new)
             for p, lm, Xw in zip(new, landmarks, X_world):
-                g.add_point(int(lm), Xw)
+                new_landmarks.append(NewLandmark(int(lm), Xw, p.kind, np.asarray(p.p_body, dtype=float), np.asarray(p.Sigma_body, dtype=float)))
                 self._landmark_of[p.point_id] = int(lm)
-                for f in seed_factors(X(k), L(int(lm)), p.kind, p.p_body, p.Sigma_body, self.rig.camera_model, self._K, self.rig.T_body_cam, c.frontend.camera_point_sigma_px):
-                    g.add_factor(f)
+                self.points[int(lm)] = Xw
             self.live.add(ids, landmarks, X_world, Sigma_world)
             if self.log is not None:
                 self.log.add_seeds(len(self._frames), new, landmarks)
-        try:
-            g.update()
-        except GraphUpdateError as exc:
-            # start over from the current estimates (this keyframe's new factors are lost); a second
-            # failure ends the run with what was computed
-            log.warning("%s; restarting the smoother from the current estimates", exc)
-            self._restart_graph(self.T)
-        # the recent poses move with the keyframe, so the spline placing this interval's scans stays smooth
-        self.history.correct(g.poses[k] @ invert(self.T))
-        self.T = g.poses[k]
-        self.history.append(t_s, self.T)
-        if self._graph_work_in_keyframe and g.marginalization_due:
-            self._marginalize()
-        self._take_graph_estimates()
+        links, self._pending_links = self._pending_links, []
+        for lm in [p.landmark for p in new_landmarks] + [new_lm for _, new_lm, _ in links]:
+            self._landmark_keyframe[lm] = k
+        every = c.pose_covariance_every_s
+        want_marginal = every > 0 and not self._marginal_asked and t_s - self._anchor_t_s >= every
+        self._marginal_asked |= want_marginal
+        self._graph.send(KeyframeMessage(k, t_s, self.T.copy(), self.U_kf, self.Q_kf, *observations, links, new_landmarks, want_marginal))
+        self._sent_T[k] = self.T.copy()
+        self._info_pending[k], self._info_next = self._info_next, None
+        self._Q_since[k] = np.zeros((6, 6))
+        self.poses.setdefault(k, self.T.copy())  # until the graph's estimate is back
         self.T_kf = self.T.copy()
         self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))
         self.frames_since_kf = 0
-        every = c.pose_covariance_every_s
         if every <= 0:
             self._anchor_T, self._anchor_P, self._anchor_Q = self.T.copy(), self.P_loc.copy(), np.zeros((6, 6))
-        elif t_s - self._anchor_t_s >= every:
-            # taken at the next frame that is not a keyframe, to spread the work; at once when overdue
-            self._marginal_due = True
-            if self._graph_work_in_keyframe or t_s - self._anchor_t_s >= 2 * every:
-                self._take_marginal()
-        for hook in self.keyframe_hooks:
-            hook(self)
 
-    def _marginalize(self) -> None:
-        """Cut the graph's window back to the lag; restart the smoother if that fails (the caller
-        then takes the graph's estimates)."""
-        try:
-            self.graph.marginalize()
-        except GraphUpdateError as exc:
-            log.warning("%s; restarting the smoother from the current estimates", exc)
-            self._restart_graph(self.T_kf)  # the current frame's covariance: a little wider than the keyframe's
+    def _take_results(self, results: list[GraphResult], restart: bool = True) -> float:
+        """Apply the graph's results in order (a failed update restarts the graph from the current
+        estimates, unless ``restart`` is false); returns the graph's time on them, seconds."""
+        worker_s = 0.0
+        while results:
+            for r in results:
+                worker_s += r.worker_s
+                if r.waiting:
+                    continue
+                if r.failure is not None:
+                    if restart:
+                        log.warning("%s; restarting the smoother from the current estimates", r.failure)
+                        self._restart_graph()
+                    else:
+                        log.warning("%s (at the end of the run: the estimates before it are kept)", r.failure)
+                    continue
+                self._apply_result(r)
+            results = self._graph.results() if isinstance(self._graph, InProcessGraph) else []
+        return worker_s
 
-    def _restart_graph(self, T_world_body_keyframe: np.ndarray) -> None:
+    def _apply_result(self, r: GraphResult) -> None:
+        """The graph's smoothed keyframe ``r.k`` moves the current pose and the keyframes sent since
+        with it (a world-frame correction); the live points take the graph's estimates, and those it
+        has marginalised are archived."""
+        k = r.k
+        self.poses.update(r.poses)
+        self.points.update(r.points)
+        self._graph_lag.append(len(self.keyframe_t_s) - 1 - k)
+        C = np.eye(4)
+        if k in self._sent_T:
+            # kept on SE(3): corrections compose, and invert() assumes orthonormal rotations
+            C = nearest_pose(r.poses[k] @ invert(self._sent_T[k]))
+            self.T = nearest_pose(r.poses[k] @ invert(self._sent_T[k]) @ self.T)  # the smoothed keyframe and the motion since
+            self.T_kf = C @ self.T_kf
+            self.history.correct(C)
+            self._sent_T = {j: C @ T for j, T in self._sent_T.items() if j > k}
+        if r.marginal is not None:
+            self._anchor_T, self._anchor_P, self._anchor_Q = r.poses[k].copy(), r.marginal, self._Q_since[k].copy()
+            self._anchor_t_s = self.keyframe_t_s[k]
+            self._marginal_asked = False
+        self._Q_since = {j: Q for j, Q in self._Q_since.items() if j > k}
+        live = self.live
+        row = {int(lm): i for i, lm in enumerate(live.landmark)}
+        for j in sorted(j for j in self._info_pending if j <= k):
+            landmarks, info = self._info_pending.pop(j)
+            for lm, info_lm in zip(landmarks, info):
+                i = row.get(int(lm))
+                if i is not None:
+                    live.info[i] += info_lm
+        keep = np.ones(len(live), dtype=bool)
+        for i, lm in enumerate(live.landmark):
+            lm = int(lm)
+            X_lm = r.points.get(lm)
+            if X_lm is not None:
+                live.X[i] = X_lm
+            elif self._landmark_keyframe.get(lm, -1) > k:  # started after keyframe k: placed from a pose the correction has moved
+                live.X[i] = transform_points(C, live.X[i][None])[0]
+                self.points[lm] = live.X[i].copy()
+            else:
+                keep[i] = False
+                self._gone.add(lm)
+                self._archive(i, "marginalized")
+        live.keep(keep)
+
+    def _restart_graph(self) -> None:
+        """A new smoother at the newest keyframe, from the front end's estimates."""
         self.frontend.counters["graph_restarts"] += 1
         live = self.live
-        self.graph.restart(T_world_body_keyframe, self._output_covariance(), {int(lm): (live.X[i], self._point_covariance_world(i)) for i, lm in enumerate(live.landmark)})
+        k = len(self.keyframe_t_s) - 1
+        priors = {int(lm): (live.X[i].copy(), self._point_covariance_world(i)) for i, lm in enumerate(live.landmark)}
+        for lm in priors:
+            self._landmark_keyframe[lm] = k
         self._pending_links = []
+        self._marginal_asked = False
+        self._sent_T = {k: self.T_kf.copy()}
+        self._graph.send(RestartMessage(k, self.T_kf.copy(), self._output_covariance(), priors))
 
-    def _take_graph_estimates(self) -> None:
-        """The live points take the graph's estimates; those it has marginalised are archived."""
-        g = self.graph
-        in_window = np.array([g.in_window(int(lm)) for lm in self.live.landmark], dtype=bool)
-        for i in np.flatnonzero(~in_window):
-            self._archive(int(i), "marginalized")
-        self.live.keep(in_window)
-        self.live.X = np.array([g.points[int(lm)] for lm in self.live.landmark]).reshape(-1, 3)
 
     def _output_covariance(self) -> np.ndarray:
         """The current pose's covariance: the anchor keyframe's marginal carried to it, plus the
@@ -481,16 +546,6 @@ class Isam2Slam(FrameDrivenEstimator):
         A = adjoint(invert(invert(self._anchor_T) @ self.T))
         P = A @ self._anchor_P @ A.T + self._anchor_Q
         return 0.5 * (P + P.T)
-
-    def _take_marginal(self) -> None:
-        """The last keyframe's marginal pose covariance from the smoother becomes the output's
-        anchor, with the motion covariance since."""
-        self._marginal_due = False
-        g = self.graph
-        k = g.last_keyframe
-        self._anchor_T, self._anchor_P = g.poses[k].copy(), g.pose_covariance(k)
-        self._anchor_t_s = g.keyframe_t_s[k]
-        self._anchor_Q = self.Q_kf.copy()
 
     # --- map management ----------------------------------------------------------------------
     def _point_covariance_world(self, i: int) -> np.ndarray:
@@ -515,19 +570,22 @@ class Isam2Slam(FrameDrivenEstimator):
     # --- results -----------------------------------------------------------------------------
     def smoothed_poses(self) -> np.ndarray:
         """Every frame's pose from the latest keyframe estimates (each frame rides on the keyframe before it)."""
-        poses = self.graph.poses
+        poses = self.poses
         return np.array([poses[k] @ T_rel for k, T_rel in self._frame_anchor]).reshape(-1, 4, 4)
 
     def result(self) -> EstimatorResult:
         res = EstimatorResult(self.name, list(self._frames))
-        pts = self.graph.points
+        pts = self.points
         for pid, kind, cov, n_tracked, created in self._archived:
             res.points.add(pid, kind, pts[self._landmark_of[pid]], cov, n_tracked, created)
         for i, pid in enumerate(self.live.ids):
             track = self.frontend.tracks[int(pid)]
             res.points.add(int(pid), track.kind, self.live.X[i], self._point_covariance_world(i), track.n_tracked, track.created_t_s)
         res.counters = self.frontend.counters.copy()
-        res.counters["keyframes"] = len(self.graph.keyframe_t_s)
+        res.counters["keyframes"] = len(self.keyframe_t_s)
+        if self._graph_lag:
+            res.counters["graph_lag_keyframes_median"] = int(np.median(self._graph_lag))
+            res.counters["graph_lag_keyframes_max"] = int(np.max(self._graph_lag))
         if self.batch_result is not None:
             return self.batch_result.apply_to(res, self._landmark_of)
         if self._frames:

@@ -43,10 +43,15 @@ class KeyframeGraph:
         relinearize_threshold: float = 0.01,
         relinearize_skip: int = 1,
         marginalize_every_s: float = 0.5,
+        optimizer: str = "dogleg",
     ):
         self._params = gtsam.ISAM2Params()
         self._params.setRelinearizeThreshold(relinearize_threshold)
         self._params.relinearizeSkip = relinearize_skip
+        if optimizer == "dogleg":
+            self._params.setOptimizationParams(gtsam.ISAM2DoglegParams())
+        elif optimizer != "gauss_newton":
+            raise DemGraphError(f"unknown graph optimizer {optimizer!r}: gauss_newton or dogleg")
         self.lag_s = float(lag_s)
         self.marginalize_every_s = float(marginalize_every_s)
         self.poses: dict[int, np.ndarray] = {}  # keyframe index -> T_world_body, latest estimate
@@ -100,6 +105,12 @@ class KeyframeGraph:
         """The landmark is a variable of the smoother (or will be at the next update)."""
         return int(landmark) in self._point_t or int(landmark) in self._new_point_t
 
+    def window_keyframes(self) -> list[int]:
+        return list(self._pose_t)
+
+    def window_landmarks(self) -> list[int]:
+        return list(self._point_t)
+
     def timestamps(self) -> dict[int, float]:
         """Every variable in the window (gtsam key) with its time, seconds."""
         return {**{X(k): t for k, t in self._pose_t.items()}, **{L(j): t for j, t in self._point_t.items()}}
@@ -115,10 +126,13 @@ class KeyframeGraph:
         self.add_factor(gtsam.PriorFactorPose3(X(k), T, gtsam.noiseModel.Gaussian.Covariance(np.asarray(P, dtype=float))))
 
     # --- solving ----------------------------------------------------------------------------
-    def update(self) -> None:
-        """One iSAM2 update with what was added since the last one; refreshes the estimates."""
+    def update(self, iterations: int = 1) -> None:
+        """An iSAM2 update with what was added since the last one, and ``iterations - 1`` more
+        relinearisation steps; refreshes the estimates."""
         try:
             self.isam.update(self._new_factors, self._new_values)
+            for _ in range(iterations - 1):
+                self.isam.update()
         except RuntimeError as exc:  # gtsam reports an indeterminate system or a missing key this way
             text = one_line(exc)  # with the variable gtsam names
             self._clear_pending()

@@ -31,6 +31,17 @@ def invert(T: np.ndarray) -> np.ndarray:
     return make_pose(R_inv, t_inv)
 
 
+def nearest_pose(T: np.ndarray) -> np.ndarray:
+    """``T`` with its rotation replaced by the nearest rotation matrix (SVD): a product of many
+    transforms drifts off SO(3) by rounding, and :func:`invert` assumes it is on it."""
+    T = np.array(T, dtype=float)
+    U, _, Vt = np.linalg.svd(T[..., :3, :3])
+    D = np.ones(T.shape[:-2] + (3,))
+    D[..., 2] = np.sign(np.linalg.det(U @ Vt))
+    T[..., :3, :3] = (U * D[..., None, :]) @ Vt
+    return T
+
+
 def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     """Map (N,3) points from frame b to frame a."""
     points_b = np.asarray(points_b, dtype=float)

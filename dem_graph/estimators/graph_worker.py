@@ -1,0 +1,335 @@
+"""The graph's side of the graph estimator: what it is sent at each keyframe, what it answers, and
+where it runs.
+
+The front end (tracking, the per-frame pose) and the graph (iSAM2 updates, marginalisation,
+marginal covariances) talk only through plain messages:
+
+- :class:`KeyframeMessage`: a keyframe's pose guess, the motion since the keyframe before, its
+  observations, the landmarks it starts (seeds and patch-refresh links);
+- :class:`RestartMessage`: start a new smoother from the front end's estimates after a failure;
+- :class:`GraphResult`: the smoothed window after the update, and a marginal when one was asked for.
+
+:class:`GraphWorker` turns messages into factors and runs the update. It runs either in the
+estimator's own process (:class:`InProcessGraph`: each keyframe's result is back before the frame
+ends, and a run is reproducible) or in a second process (:class:`ProcessGraph`: the frame's time is
+the front end's alone, the graph works on another core and its results come back one or more
+keyframes later; a run then depends on the timing).
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+
+from dem_graph.errors import DemGraphError
+from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
+from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
+from dem_graph.geometry.camera import PinholeCamera
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class GraphSetup:
+    """Everything the graph needs to start: the first keyframe and the factors' settings."""
+
+    T_world_body_0: np.ndarray
+    P0: np.ndarray  # 6x6, [rotation, translation]
+    t0_s: float
+    lag_s: float
+    relinearize_threshold: float
+    relinearize_skip: int
+    marginalize_every_s: float
+    optimizer: str  # "dogleg" or "gauss_newton"
+    camera: PinholeCamera
+    T_body_cam: np.ndarray
+    camera_point_sigma_px: float  # the seed pixel of a camera point
+    split_link_sigma_m: float
+    robust: bool
+
+
+@dataclass(frozen=True)
+class NewLandmark:
+    landmark: int
+    X_world: np.ndarray  # initial guess, metres
+    kind: int  # LASER or CAMERA (frontend)
+    p_body: np.ndarray  # the seed in the keyframe's body frame
+    Sigma_body: np.ndarray  # 3x3
+
+
+@dataclass(frozen=True)
+class KeyframeMessage:
+    """Keyframe ``k`` at ``t_s``. When ``k`` is a new keyframe, ``U``/``Q`` are the motion and its
+    covariance since keyframe ``k - 1``; when it is the graph's last one (the first frame, at the
+    start pose's time) the observations attach to it."""
+
+    k: int
+    t_s: float
+    T_world_body: np.ndarray  # the front end's estimate: the initial guess
+    U: np.ndarray
+    Q: np.ndarray
+    landmarks: np.ndarray  # observed landmark per observation (m,)
+    uv_px: np.ndarray  # (m,2)
+    sigma_px: np.ndarray  # (m,)
+    links: list[tuple[int, int, np.ndarray]] = field(default_factory=list)  # (old, new landmark, old covariance) of refreshed patches
+    new_points: list[NewLandmark] = field(default_factory=list)
+    want_marginal: bool = False  # answer with keyframe k's marginal pose covariance
+
+
+@dataclass(frozen=True)
+class RestartMessage:
+    """A new smoother at keyframe ``k`` (the newest one sent): its pose and the live landmarks
+    (landmark -> (X_world, 3x3 covariance)) enter with priors at the front end's estimates."""
+
+    k: int
+    T_world_body: np.ndarray
+    P: np.ndarray
+    point_priors: dict[int, tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass
+class GraphResult:
+    k: int  # the newest keyframe in the update
+    poses: dict[int, np.ndarray]  # every keyframe in the window: T_world_body
+    points: dict[int, np.ndarray]  # every landmark in the window: X_world
+    marginal: np.ndarray | None = None  # keyframe k's marginal pose covariance, when asked for
+    failure: str | None = None  # the update failed: the graph waits for a RestartMessage
+    waiting: bool = False  # keyframes that arrived while the graph waited for its restart
+    worker_s: float = 0.0  # the graph's time on these messages, seconds
+    marginalized: int = 0  # variables marginalised in this update
+
+
+class GraphWorker:
+    """Turns messages into factors and updates a :class:`KeyframeGraph` with them."""
+
+    def __init__(self, setup: GraphSetup):
+        self.setup = setup
+        self._K = calibration(setup.camera)
+        self.graph = KeyframeGraph(setup.T_world_body_0, setup.P0, setup.t0_s, setup.lag_s, setup.relinearize_threshold, setup.relinearize_skip, setup.marginalize_every_s, setup.optimizer)
+        self.failed = False
+
+    def apply(self, messages: list) -> GraphResult:
+        """Add the messages' factors in order, then one update, the window's cut when due and the
+        marginal when asked for."""
+        t0 = time.perf_counter()
+        g = self.graph
+        want_marginal, pending = False, 0
+        for m in messages:
+            if isinstance(m, RestartMessage):
+                self._restart(m)  # updates the new smoother
+                pending = 0
+            elif self.failed:
+                # waiting for the restart: the keyframe is kept in the numbering only
+                g.keyframe_t_s.append(float(m.t_s))
+                g.poses[m.k] = np.array(m.T_world_body, dtype=float)
+            else:
+                self._add_keyframe(m)
+                want_marginal |= m.want_marginal
+                pending += 1
+        result = GraphResult(g.last_keyframe, {}, {})
+        if self.failed:
+            result.waiting = True
+            return result
+        try:
+            if pending:
+                # iSAM2 takes one step per update: keyframes that arrive together get as many steps
+                # as they would have had one at a time
+                g.update(iterations=pending)
+            if g.marginalization_due:
+                result.marginalized = g.marginalize()
+            if want_marginal:
+                result.marginal = g.pose_covariance(g.last_keyframe)
+        except GraphUpdateError as exc:
+            self.failed = True
+            result.failure = str(exc)
+            result.worker_s = time.perf_counter() - t0
+            return result
+        result.poses = {k: g.poses[k] for k in g.window_keyframes()}
+        result.points = {j: g.points[j] for j in g.window_landmarks()}
+        result.worker_s = time.perf_counter() - t0
+        return result
+
+    def _add_keyframe(self, m: KeyframeMessage) -> None:
+        g, s = self.graph, self.setup
+        k = g.last_keyframe
+        if m.k > k:
+            k = g.add_keyframe(m.t_s, m.T_world_body)
+            if k != m.k:
+                raise DemGraphError(f"keyframe {m.k} sent to the graph, which expected keyframe {k}")
+            g.add_factor(odometry_factor(X(k - 1), X(k), m.U, m.Q))
+        for old, new, Sigma_old in m.links:
+            X_old = g.points[old]
+            g.add_point(new, X_old)
+            if g.in_window(old):
+                g.add_factor(link_factor(L(old), L(new), s.split_link_sigma_m))
+            else:  # the old one has left the window: its last estimate, as a prior
+                Sigma = np.asarray(Sigma_old) + s.split_link_sigma_m**2 * np.eye(3)
+                g.add_factor(gtsam.PriorFactorPoint3(L(new), gtsam.Point3(*X_old), gtsam.noiseModel.Gaussian.Covariance(Sigma)))
+        for lm, z, sigma in zip(m.landmarks, m.uv_px, m.sigma_px):
+            lm = int(lm)
+            if not g.in_window(lm):  # marginalised since the front end last heard
+                continue
+            g.add_factor(projection_factor(X(k), L(lm), z, float(sigma), self._K, s.T_body_cam, robust=s.robust))
+            g.observed(lm)
+        for p in m.new_points:
+            g.add_point(p.landmark, p.X_world)
+            for f in seed_factors(X(k), L(p.landmark), p.kind, p.p_body, p.Sigma_body, s.camera, self._K, s.T_body_cam, s.camera_point_sigma_px):
+                g.add_factor(f)
+
+    def _restart(self, m: RestartMessage) -> None:
+        g = self.graph
+        if m.k != g.last_keyframe:
+            raise DemGraphError(f"restart at keyframe {m.k} sent to the graph, whose last keyframe is {g.last_keyframe}")
+        self.failed = False
+        g.restart(m.T_world_body, m.P, m.point_priors)
+
+    def final_estimates(self) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], list[float]]:
+        """The latest estimate of every keyframe and landmark ever in the window, and the keyframe times."""
+        return dict(self.graph.poses), dict(self.graph.points), list(self.graph.keyframe_t_s)
+
+
+class InProcessGraph:
+    """The graph in the estimator's process: each message is applied when sent."""
+
+    def __init__(self, setup: GraphSetup):
+        self.worker = GraphWorker(setup)
+        self._results: list[GraphResult] = []
+
+    def send(self, message) -> None:
+        self._results.append(self.worker.apply([message]))
+
+    def results(self) -> list[GraphResult]:
+        out, self._results = self._results, []
+        return out
+
+    def finish(self) -> tuple[list[GraphResult], tuple[dict[int, np.ndarray], dict[int, np.ndarray], list[float]]]:
+        return self.results(), self.worker.final_estimates()
+
+    def close(self) -> None:
+        pass
+
+
+def _serve(conn) -> None:
+    """The second process: apply whatever has arrived as one update, answer, repeat."""
+    try:
+        worker = GraphWorker(conn.recv())
+    except Exception as exc:  # noqa: BLE001 - reported to the estimator, which raises it
+        conn.send(("error", f"the graph process could not start: {exc}"))
+        return
+    while True:
+        try:
+            messages = [conn.recv()]
+            while conn.poll():
+                messages.append(conn.recv())
+        except EOFError:  # the estimator has gone
+            return
+        finish = any(isinstance(m, str) and m == "finish" for m in messages)
+        messages = [m for m in messages if not isinstance(m, str)]
+        try:
+            if messages:
+                conn.send(("result", worker.apply(messages)))
+            if finish:
+                conn.send(("final", worker.final_estimates()))
+                return
+        except Exception as exc:  # noqa: BLE001 - a bug in the graph: reported, the estimator ends the run with what it has
+            conn.send(("error", f"the graph process failed: {type(exc).__name__}: {exc}"))
+            return
+
+
+class ProcessGraph:
+    """The graph in a second process (another core); results come back when they are ready.
+
+    The process is a fresh interpreter running this module (not a fork of the estimator's, and not
+    ``multiprocessing``'s spawn, which would re-run the user's script), talking over a socket pair;
+    its first message is the setup."""
+
+    def __init__(self, setup: GraphSetup):
+        ours, theirs = socket.socketpair()
+        try:
+            self._process = subprocess.Popen([sys.executable, "-m", __name__, str(theirs.fileno())], pass_fds=(theirs.fileno(),))
+        except OSError as exc:
+            ours.close()
+            raise DemGraphError(f"the graph process could not start: {exc}") from None
+        finally:
+            theirs.close()
+        self._conn = Connection(ours.detach())
+        self._conn.send(setup)
+        self._final = None
+
+    def send(self, message) -> None:
+        try:
+            self._conn.send(message)
+        except OSError:  # a broken pipe: the process has ended; its last words, if any, explain why
+            while self._conn.poll():
+                self._receive()
+            raise DemGraphError("the graph process ended unexpectedly") from None
+
+    def _receive(self):
+        try:
+            kind, payload = self._conn.recv()
+        except EOFError:
+            raise DemGraphError("the graph process ended unexpectedly") from None
+        if kind == "error":
+            raise DemGraphError(payload)
+        return kind, payload
+
+    def results(self) -> list[GraphResult]:
+        out = []
+        while self._conn.poll():
+            kind, payload = self._receive()
+            if kind == "final":
+                self._final = payload
+            else:
+                out.append(payload)
+        return out
+
+    def finish(self) -> tuple[list[GraphResult], tuple[dict[int, np.ndarray], dict[int, np.ndarray], list[float]]]:
+        """The results not yet taken, and the final estimates once every message sent has been applied."""
+        self._conn.send("finish")
+        pending = []
+        while self._final is None:
+            kind, payload = self._receive()
+            if kind == "final":
+                self._final = payload
+            else:
+                pending.append(payload)
+        return pending, self._final
+
+    def close(self) -> None:
+        self._conn.close()
+        try:
+            self._process.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+
+
+def main(fd: int) -> None:
+    _serve(Connection(fd))
+
+
+if __name__ == "__main__":
+    # through the package, so the messages unpickle to the classes the worker checks against
+    from dem_graph.estimators.graph_worker import main as package_main
+
+    package_main(int(sys.argv[1]))
+
+
+__all__ = [
+    "GraphResult",
+    "GraphSetup",
+    "GraphWorker",
+    "InProcessGraph",
+    "KeyframeMessage",
+    "NewLandmark",
+    "ProcessGraph",
+    "RestartMessage",
+]
