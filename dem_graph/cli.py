@@ -96,20 +96,22 @@ def _open_dataset(path: Path):
 )
 @click.option("--lag", "lag_s", type=float, default=None, help="isam2: fixed lag of the smoother, seconds.")
 @click.option("--keyframe-every", type=int, default=None, help="isam2: a keyframe every this many frames (1: every frame).")
+@click.option("--graph-process", is_flag=True, help="isam2: run the graph in a second process, on another core (faster frames; results depend on the timing).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Run folder to write.")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="YAML run configuration (see config.yaml of a run).")
 @click.option("--max-points", type=int, default=None, help="Cap n on live points.")
 @click.option("--no-odometry", is_flag=True, help="Ignore the dataset's odometry (constant-velocity model).")
 @click.option("--max-frames", type=int, default=None, help="Stop after this many camera frames.")
 @_friendly_errors
-def run(dataset, estimator, lag_s, keyframe_every, out_dir, config_path, max_points, no_odometry, max_frames) -> None:
+def run(dataset, estimator, lag_s, keyframe_every, graph_process, out_dir, config_path, max_points, no_odometry, max_frames) -> None:
     """Run an estimator over a dataset folder; write trajectory.tum, points.ply, metrics.json, config.yaml
     (isam2 also trajectory_smoothed.tum; isam2-batch also trajectory_online.tum)."""
     from dem_graph.run import load_run_config, run_estimator, summary_lines, write_run
 
     sequence = _open_dataset(dataset)
     config = load_run_config(
-        config_path, estimator=estimator, max_points=max_points, no_odometry=no_odometry, max_frames=max_frames, lag_s=lag_s, keyframe_every=keyframe_every
+        config_path, estimator=estimator, max_points=max_points, no_odometry=no_odometry, max_frames=max_frames, lag_s=lag_s, keyframe_every=keyframe_every,
+        graph_process=graph_process,
     )
     result = run_estimator(sequence, config)
     paths = write_run(result, out_dir)

@@ -137,6 +137,7 @@ def load_run_config(
     max_frames: int | None = None,
     lag_s: float | None = None,
     keyframe_every: int | None = None,
+    graph_process: bool = False,
 ) -> RunConfig:
     """The run configuration: defaults, then the YAML file at ``path``, then the given overrides."""
     data: dict = {}
@@ -164,6 +165,8 @@ def load_run_config(
             config.isam2.lag_s = lag_s
         if keyframe_every is not None:
             config.isam2.keyframe_every = keyframe_every
+        if graph_process:
+            config.isam2.graph_process = True
     except ValidationError as exc:
         raise ConfigError(f"invalid run configuration: {format_validation_error(exc)}", path) from None
     return config

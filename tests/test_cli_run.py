@@ -26,3 +26,15 @@ def test_the_config_files_estimator_holds_unless_the_command_line_names_one(log_
     result = CliRunner().invoke(main, ["--no-progress", "run", str(log_folder), "--config", str(config), "--max-frames", "3", "--out", str(out), *flags])
     assert result.exit_code == 0, result.output
     assert json.loads((out / "metrics.json").read_text())["estimator"] == expected
+
+
+def test_graph_process_flag_reaches_the_written_configuration(log_folder, tmp_path):
+    """`--graph-process` runs isam2's graph in a second process; the run's config.yaml says so,
+    and the graph's lag is counted."""
+    import yaml
+
+    out = tmp_path / "run"
+    result = CliRunner().invoke(main, ["--no-progress", "run", str(log_folder), "--estimator", "isam2", "--graph-process", "--max-frames", "8", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert yaml.safe_load((out / "config.yaml").read_text())["isam2"]["graph_process"] is True
+    assert "graph_lag_keyframes_median" in json.loads((out / "metrics.json").read_text())["events"]

@@ -6,16 +6,17 @@ Every frame (docs/isam2_design.md):
    pose (relative to the map) and of the point's own covariance (its information from the
    keyframes that saw it, poses held fixed), plus the pixel noise;
 3. update the pose against the points (:func:`update_pose`: points fixed, their covariance as
-   pixel noise, Huber weights). This is the frame's output: what was known at that frame.
+   pixel noise, Huber weights).
 
 Every frame by default (``keyframe_every: 1``), and otherwise every ``keyframe_every`` frames or
-sooner when the map runs short of points, the frame becomes a keyframe of the graph
-(:class:`KeyframeGraph`): a pose variable, the odometry since the last one, a projection factor
-for every inlier observation of the frame, and the new points with their laser or flat-ground
-factors; then one iSAM2 update. The keyframe's smoothed pose and the live points' smoothed
-positions replace the per-frame ones. The window is cut back to ``lag_s`` every
-``marginalize_every_s`` (:meth:`KeyframeGraph.marginalize`), at a frame that is not a keyframe when
-there is one.
+sooner when the map runs short of points, the frame becomes a keyframe of the graph: a message
+(:mod:`dem_graph.estimators.graph_worker`) with the pose, the odometry since the last keyframe,
+the frame's inlier observations and the new points with their laser or flat-ground seeds; the
+graph adds the factors and runs one iSAM2 update (:class:`KeyframeGraph`), cutting the window back
+to ``lag_s`` every ``marginalize_every_s``. When its result is back (in the same frame, or some
+keyframes later with ``graph_process: true``) the smoothed keyframe pose corrects the current one
+and the live points take their smoothed positions. The frame's output is the pose after all this:
+what was known at that frame.
 
 With keyframes every n > 1 frames, the observations in between are used by the per-frame pose, and
 reach the graph only through the weight of the next keyframe observation of the point
@@ -69,7 +70,7 @@ class Isam2Options(StrictModel):
     keyframe_min_live_fraction: float = Field(0.8, ge=0, le=1, description="also a keyframe when the live points fall below this fraction of the cap (new points enter at keyframes)")
     lag_s: float = Field(1.5, gt=0, description="fixed lag of the smoother, seconds: older variables are marginalised")
     marginalize_every_s: float = Field(
-        0.5, gt=0, description="the window is cut back to the lag once it spans lag_s + this, seconds (at a frame that is not a keyframe: one batch elimination of the window)"
+        0.5, gt=0, description="the window is cut back to the lag once it spans lag_s + this, seconds (one batch elimination of the window)"
     )
     relinearize_threshold: float = Field(0.01, gt=0, description="iSAM2 relinearises a variable whose update exceeds this")
     relinearize_skip: int = Field(1, ge=1, description="iSAM2 checks for relinearisation every this many updates")
