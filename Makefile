@@ -13,6 +13,7 @@ demo: setup
 	$(BIN)/dem-graph run $(OUT)/demo/dataset --estimator gm --out $(OUT)/demo/run_gm
 	$(BIN)/dem-graph run $(OUT)/demo/dataset --estimator ptpm --out $(OUT)/demo/run_ptpm
 	$(BIN)/dem-graph run $(OUT)/demo/dataset --estimator isam2 --out $(OUT)/demo/run_isam2
+	$(BIN)/dem-graph run $(OUT)/demo/dataset --estimator isam2 --graph-process --out $(OUT)/demo/run_isam2_process
 
 test: setup
 	$(BIN)/python -m pytest -q

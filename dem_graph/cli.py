@@ -124,7 +124,7 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, out_dir, confi
 
 
 @main.command()
-@click.option("--estimators", default="gm,ptpm,isam2", show_default=True, help="Comma-separated estimators (gm, ptpm, isam2, isam2-process: isam2 with its graph in a second process).")
+@click.option("--estimators", default="gm,ptpm,isam2,isam2-process", show_default=True, help="Comma-separated estimators (gm, ptpm, isam2, isam2-process: isam2 with its graph in a second process).")
 @click.option("--points", default="50,100,130,150,200,300", show_default=True, help="Comma-separated caps on live points.")
 @click.option("--scenario", "scenario_name", default="demo", show_default=True, help="Simulated scenario to replay.")
 @click.option("--frames", type=int, default=150, show_default=True, help="Camera frames per run (1550 or more: also the cost at frame 1500 over frame 150).")
