@@ -228,7 +228,7 @@ def test_a_failed_graph_update_restarts_the_smoother(smoke_log, monkeypatch):
 def test_search_regions_match_the_smoothers_marginals(smoke_log):
     """The approximate search regions (pose relative to the map + each point's own covariance)
     against the exact ones from the smoother's joint marginal of the keyframe pose and the point.
-    Measured on this log (every frame a keyframe, 640 points): 67 % contained outright, the exact
+    Measured on this log (every frame a keyframe, 640 points): 66 % contained outright, the exact
     region sticking out by 0.5 % in sigma at the 95th percentile (1.010 in variance), 0.9 % at
     worst; area ratio median 1.006."""
     from dem_graph.evaluation.search_regions import search_region_study

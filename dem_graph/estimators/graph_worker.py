@@ -18,7 +18,6 @@ keyframes later; a run then depends on the timing).
 
 from __future__ import annotations
 
-import logging
 import socket
 import subprocess
 import sys
@@ -34,8 +33,6 @@ from dem_graph.errors import DemGraphError
 from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
 from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
 from dem_graph.geometry.camera import PinholeCamera
-
-log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -105,7 +102,6 @@ class GraphResult:
     failure: str | None = None  # the update failed: the graph waits for a RestartMessage
     waiting: bool = False  # keyframes that arrived while the graph waited for its restart
     worker_s: float = 0.0  # the graph's time on these messages, seconds
-    marginalized: int = 0  # variables marginalised in this update
 
 
 class GraphWorker:
@@ -128,9 +124,7 @@ class GraphWorker:
                 self._restart(m)  # updates the new smoother
                 pending = 0
             elif self.failed:
-                # waiting for the restart: the keyframe is kept in the numbering only
-                g.keyframe_t_s.append(float(m.t_s))
-                g.poses[m.k] = np.array(m.T_world_body, dtype=float)
+                g.skip_keyframe(m.t_s, m.T_world_body)  # waiting for the restart
             else:
                 self._add_keyframe(m)
                 want_marginal |= m.want_marginal
@@ -145,7 +139,7 @@ class GraphWorker:
                 # as they would have had one at a time
                 g.update(iterations=pending)
             if g.marginalization_due:
-                result.marginalized = g.marginalize()
+                g.marginalize()
             if want_marginal:
                 result.marginal = g.pose_covariance(g.last_keyframe)
         except GraphUpdateError as exc:
@@ -153,8 +147,7 @@ class GraphWorker:
             result.failure = str(exc)
             result.worker_s = time.perf_counter() - t0
             return result
-        result.poses = {k: g.poses[k] for k in g.window_keyframes()}
-        result.points = {j: g.points[j] for j in g.window_landmarks()}
+        result.poses, result.points = g.window_estimates()
         result.worker_s = time.perf_counter() - t0
         return result
 
@@ -192,9 +185,9 @@ class GraphWorker:
         self.failed = False
         g.restart(m.T_world_body, m.P, m.point_priors)
 
-    def final_estimates(self) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], list[float]]:
-        """The latest estimate of every keyframe and landmark ever in the window, and the keyframe times."""
-        return dict(self.graph.poses), dict(self.graph.points), list(self.graph.keyframe_t_s)
+    def final_estimates(self) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """The latest estimate of every keyframe and landmark ever in the window."""
+        return dict(self.graph.poses), dict(self.graph.points)
 
 
 class InProcessGraph:
@@ -211,7 +204,7 @@ class InProcessGraph:
         out, self._results = self._results, []
         return out
 
-    def finish(self) -> tuple[list[GraphResult], tuple[dict[int, np.ndarray], dict[int, np.ndarray], list[float]]]:
+    def finish(self) -> tuple[list[GraphResult], tuple[dict[int, np.ndarray], dict[int, np.ndarray]]]:
         return self.results(), self.worker.final_estimates()
 
     def close(self) -> None:
@@ -263,7 +256,6 @@ class ProcessGraph:
             theirs.close()
         self._conn = Connection(ours.detach())
         self._conn.send(setup)
-        self._final = None
 
     def send(self, message) -> None:
         try:
@@ -283,26 +275,22 @@ class ProcessGraph:
         return kind, payload
 
     def results(self) -> list[GraphResult]:
+        """The results that have arrived (none after :meth:`finish`, which takes them all)."""
         out = []
-        while self._conn.poll():
-            kind, payload = self._receive()
-            if kind == "final":
-                self._final = payload
-            else:
-                out.append(payload)
+        while not self._conn.closed and self._conn.poll():
+            out.append(self._receive()[1])
         return out
 
-    def finish(self) -> tuple[list[GraphResult], tuple[dict[int, np.ndarray], dict[int, np.ndarray], list[float]]]:
+    def finish(self) -> tuple[list[GraphResult], tuple[dict[int, np.ndarray], dict[int, np.ndarray]]]:
         """The results not yet taken, and the final estimates once every message sent has been applied."""
-        self._conn.send("finish")
+        self.send("finish")
         pending = []
-        while self._final is None:
+        while True:
             kind, payload = self._receive()
             if kind == "final":
-                self._final = payload
-            else:
-                pending.append(payload)
-        return pending, self._final
+                self._conn.close()  # the process has ended
+                return pending, payload
+            pending.append(payload)
 
     def close(self) -> None:
         self._conn.close()

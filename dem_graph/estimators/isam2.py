@@ -176,13 +176,12 @@ class Isam2Slam(FrameDrivenEstimator):
             rig.camera_model, np.array(rig.T_body_cam, dtype=float), c.frontend.camera_point_sigma_px, c.split_link_sigma_m, c.robust,
         )  # fmt: skip
         self._graph = ProcessGraph(setup) if c.graph_process else InProcessGraph(setup)
-        # what the front end knows of the graph: every keyframe's time, the latest estimates of
-        # keyframes and landmarks, and which landmarks it has marginalised
+        # what the front end knows of the graph: every keyframe's time and the latest estimates of
+        # keyframes and landmarks
         self.keyframe_t_s: list[float] = [self.t_s]
         self.poses: dict[int, np.ndarray] = {0: self.T.copy()}
         self.points: dict[int, np.ndarray] = {}
         self._landmark_keyframe: dict[int, int] = {}  # landmark -> the keyframe whose message started it
-        self._gone: set[int] = set()  # landmarks the graph has marginalised
         # keyframes sent whose result is not back: the front end's pose for each (moved with every
         # correction since) and the motion covariance since it
         self._sent_T: dict[int, np.ndarray] = {}
@@ -225,7 +224,7 @@ class Isam2Slam(FrameDrivenEstimator):
 
     def finish(self) -> None:
         super().finish()
-        pending, (poses, points, _) = self._graph.finish()
+        pending, (poses, points) = self._graph.finish()
         self._take_results(pending, restart=False)
         self.poses.update(poses)
         self.points.update(points)
@@ -408,7 +407,8 @@ class Isam2Slam(FrameDrivenEstimator):
     def _keyframe_observations(self, idx: np.ndarray, uv: np.ndarray, H_point: np.ndarray, residual_px: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """This keyframe's inlier observations (live indices ``idx``, pixels ``uv``, pixel Jacobians
         ``H_point`` w.r.t. the points, residuals at the frame's pose) of landmarks still in the
-        graph, as (landmarks, pixels, sigma_px).
+        graph, as (landmarks, pixels, sigma_px). (A point whose landmark the graph has marginalised
+        was archived when the front end heard of it; the graph skips any it hears of first.)
 
         Each also updates its point at once, the pose held fixed (one Gauss-Newton step of the
         point's information form), so that a point's estimate and covariance stay together until
@@ -417,8 +417,6 @@ class Isam2Slam(FrameDrivenEstimator):
         kept new points' search regions at their seed's size: 14 % of tracks refused as too large
         to search, 150 frames of `demo`.)"""
         live = self.live
-        keep = np.array([int(lm) not in self._gone for lm in live.landmark[idx]], dtype=bool)
-        idx, uv, H_point, residual_px = idx[keep], uv[keep], H_point[keep], residual_px[keep]
         n = np.maximum(live.n_since_keyframe[idx], 1) if self.config.keyframe_weighting else np.ones(len(idx), dtype=np.int64)
         sigma = self._sigma_px / np.sqrt(effective_sample_size(n, self.config.track_correlation))
         live.n_since_keyframe[idx] = 0
@@ -487,7 +485,7 @@ class Isam2Slam(FrameDrivenEstimator):
                         log.warning("%s (at the end of the run: the estimates before it are kept)", r.failure)
                     continue
                 self._apply_result(r)
-            results = self._graph.results() if isinstance(self._graph, InProcessGraph) else []
+            results = self._graph.results()  # a restart's answer, in-process at once
         return worker_s
 
     def _apply_result(self, r: GraphResult) -> None:
@@ -501,8 +499,9 @@ class Isam2Slam(FrameDrivenEstimator):
         C = np.eye(4)
         if k in self._sent_T:
             # kept on SE(3): corrections compose, and invert() assumes orthonormal rotations
-            C = nearest_pose(r.poses[k] @ invert(self._sent_T[k]))
-            self.T = nearest_pose(r.poses[k] @ invert(self._sent_T[k]) @ self.T)  # the smoothed keyframe and the motion since
+            correction = r.poses[k] @ invert(self._sent_T[k])
+            C = nearest_pose(correction)
+            self.T = nearest_pose(correction @ self.T)  # the smoothed keyframe and the motion since
             self.T_kf = C @ self.T_kf
             self.history.correct(C)
             self._sent_T = {j: C @ T for j, T in self._sent_T.items() if j > k}
@@ -523,7 +522,6 @@ class Isam2Slam(FrameDrivenEstimator):
                 self.points[lm] = live.X[i].copy()
             else:
                 keep[i] = False
-                self._gone.add(lm)
                 self._archive(i, "marginalized")
         live.keep(keep)
 

@@ -77,11 +77,18 @@ class KeyframeGraph:
 
     def add_keyframe(self, t_s: float, T_world_body_guess: np.ndarray) -> int:
         """A new keyframe pose variable at ``t_s``, starting from the guess; returns its index."""
+        k = self.skip_keyframe(t_s, T_world_body_guess)
+        self._insert_pose(k, T_world_body_guess)
+        return k
+
+    def skip_keyframe(self, t_s: float, T_world_body: np.ndarray) -> int:
+        """Number keyframe ``t_s`` and keep ``T_world_body`` as its estimate, without a variable
+        (a keyframe that arrives while the graph waits for a restart); returns its index."""
         if self.keyframe_t_s and t_s <= self.keyframe_t_s[-1]:
             raise DemGraphError(f"keyframe times must increase: {t_s} after {self.keyframe_t_s[-1]}")
         k = len(self.keyframe_t_s)
         self.keyframe_t_s.append(float(t_s))
-        self._insert_pose(k, T_world_body_guess)
+        self.poses[k] = np.array(T_world_body, dtype=float)
         return k
 
     def _insert_pose(self, k: int, T_world_body: np.ndarray) -> None:
@@ -105,11 +112,9 @@ class KeyframeGraph:
         """The landmark is a variable of the smoother (or will be at the next update)."""
         return int(landmark) in self._point_t or int(landmark) in self._new_point_t
 
-    def window_keyframes(self) -> list[int]:
-        return list(self._pose_t)
-
-    def window_landmarks(self) -> list[int]:
-        return list(self._point_t)
+    def window_estimates(self) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """The latest estimates of the keyframes and of the landmarks in the window."""
+        return {k: self.poses[k] for k in self._pose_t}, {j: self.points[j] for j in self._point_t}
 
     def timestamps(self) -> dict[int, float]:
         """Every variable in the window (gtsam key) with its time, seconds."""
