@@ -114,6 +114,7 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, out_dir, confi
         graph_process=graph_process,
     )
     result = run_estimator(sequence, config)
+    result.metrics["dataset"] = str(Path(dataset).resolve())
     paths = write_run(result, out_dir)
     for line in summary_lines(result):
         click.echo(line)
@@ -121,6 +122,48 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, out_dir, confi
     if result.error:
         click.echo(f"dem-graph: error: {result.error} (results up to there were written)", err=True)
         sys.exit(2)
+
+
+@main.command()
+@click.argument("run_dir", metavar="RUN", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--dataset", type=click.Path(path_type=Path), default=None, help="Dataset folder the run was made from [default: the one in RUN/metrics.json].")
+@click.option("--at", "at_s", type=float, default=None, help="Make the local map at this time (seconds) instead of the global one.")
+@click.option("--resolution", "resolution_m", type=float, default=None, help="Cell size, metres [default: the run's, else 0.1].")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None, help="Folder for dem.tif, dem.npz, dem.png, cloud.ply [default: RUN, or RUN/dem_at_<T> with --at].")
+@_friendly_errors
+def dem(run_dir, dataset, at_s, resolution_m, out_dir) -> None:
+    """Make a run's DEM again from its poses (global, or the local map at a time)."""
+    import json
+
+    from dem_graph.dem.pipeline import run_folder_dem
+    from dem_graph.errors import DatasetError
+    from dem_graph.run import RunConfig, load_run_config
+
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise DatasetError(run_dir, "run folder not found")
+    config_path = run_dir / "config.yaml"
+    config = load_run_config(config_path) if config_path.is_file() else RunConfig()
+    if dataset is None:
+        metrics_path = run_dir / "metrics.json"
+        try:
+            dataset = json.loads(metrics_path.read_text()).get("dataset")
+        except (OSError, ValueError):
+            dataset = None
+        if not dataset:
+            raise DatasetError(metrics_path, "names no dataset: give --dataset")
+    if resolution_m is not None:
+        config.dem.fusion.resolution_m = resolution_m
+    sequence = _open_dataset(Path(dataset))
+    result = run_folder_dem(run_dir, sequence, at_s, config.dem, config.frontend.focus)
+    out_dir = out_dir or (run_dir if at_s is None else run_dir / f"dem_at_{at_s:g}")
+    paths = result.write(out_dir)
+    m = result.metrics
+    click.echo(f"DEM ({result.dem.frame}): {m['covered_cells']} cells of {config.dem.fusion.resolution_m:g} m covered")
+    if "height_error_laser_cells" in m:
+        e, c = m["height_error_laser_cells"], m["corridor"]
+        click.echo(f"height RMSE {100 * e['rmse_m']:.1f} cm over the laser-swept cells; corridor {100 * c['coverage']:.0f} % covered")
+    click.echo(f"written: {', '.join(str(p) for p in paths.values())}")
 
 
 @main.command()
@@ -139,6 +182,22 @@ def bench(estimators, points, scenario_name, frames) -> None:
         raise click.BadParameter(f"not a list of integers: {points}", param_hint="--points") from None
     result = bench_estimators(tuple(x.strip() for x in estimators.split(",")), counts, scenario_name, frames)
     click.echo(result.table())
+
+
+@main.command("bench-dem")
+@click.argument("dataset", required=False, type=click.Path(path_type=Path))
+@click.option("--run", "run_dir", type=click.Path(file_okay=False, path_type=Path), default=None, help="Place the returns with this run's poses [default: the dataset's ground truth].")
+@click.option("--points", "n_points", type=int, default=5_000_000, show_default=True, help="Measurements in the throughput test.")
+@click.option("--repeats", type=int, default=5, show_default=True, help="Timed repeats of each stage (the table gives their median and p95).")
+@_friendly_errors
+def bench_dem_command(dataset, run_dir, n_points, repeats) -> None:
+    """Benchmark the DEM: fusion throughput and the time to rebuild a whole run's DEM."""
+    from dem_graph.dem.build import load_run_poses
+    from dem_graph.evaluation.bench_dem import bench_dem
+
+    sequence = _open_dataset(dataset) if dataset is not None else None
+    poses = load_run_poses(run_dir) if run_dir is not None else None
+    click.echo(bench_dem(sequence, poses, n_points=n_points, repeats=repeats).table())
 
 
 @main.command("bench-sim")

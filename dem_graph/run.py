@@ -21,6 +21,8 @@ from pydantic import Field, ValidationError
 from dem_graph.config_types import format_validation_error
 from dem_graph.datasets.base import Sequence
 from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.dem.build import POSES_NPZ, DemConfig, dem_from_result, pose_track_from_result, save_run_poses
+from dem_graph.dem.pipeline import RunDem, make_run_dem
 from dem_graph.errors import ConfigError, DemGraphError
 from dem_graph.estimators.base import Estimator, EstimatorResult
 from dem_graph.estimators.ekf import EkfConfig, EkfOptions, EkfSlam
@@ -44,6 +46,7 @@ class RunConfig(SharedSettings):
     ekf: EkfOptions = Field(default_factory=EkfOptions, description="EKF baselines (gm, ptpm)")
     isam2: Isam2Options = Field(default_factory=Isam2Options, description="the graph estimator (isam2, isam2-batch)")
     max_frames: int | None = Field(None, ge=1, description="stop after this many camera frames")
+    dem: DemConfig = Field(default_factory=DemConfig, description="the dense DEM made from the run's poses (grid, fusion, Fig. 8 window)")
 
 
 def make_estimator(sequence: Sequence, config: RunConfig) -> Estimator:
@@ -63,6 +66,7 @@ class RunResult:
     metrics: dict = field(default_factory=dict)
     error: str | None = None  # set when the loop stopped early; the result holds what was done
     elapsed_s: float = 0.0
+    dem: RunDem | None = None  # the dense DEM from the run's poses (None if it could not be made)
 
 
 def feed(estimator: Estimator, sequence: Sequence, max_frames: int | None = None) -> Iterator[int]:
@@ -84,7 +88,7 @@ def feed(estimator: Estimator, sequence: Sequence, max_frames: int | None = None
     estimator.finish()
 
 
-def run_estimator(sequence: Sequence, config: RunConfig | None = None) -> RunResult:
+def run_estimator(sequence: Sequence, config: RunConfig | None = None, with_dem: bool = True) -> RunResult:
     config = config or RunConfig()
     estimator = make_estimator(sequence, config)
     start = time.perf_counter()
@@ -99,7 +103,23 @@ def run_estimator(sequence: Sequence, config: RunConfig | None = None) -> RunRes
     result = estimator.result()
     run = RunResult(result, config, error=error, elapsed_s=time.perf_counter() - start)
     run.metrics = compute_metrics(sequence, run)
+    if with_dem and result.frames:
+        run.dem = run_dem(run, sequence)
     return run
+
+
+def run_dem(run: RunResult, sequence: Sequence) -> RunDem | None:
+    """The run's DEM and its metrics (into ``run.metrics["dem"]``); a failure is logged, the run kept."""
+    try:
+        returns, poses = dem_from_result(run.estimator, sequence, run.config.dem)
+        half_width = run.config.frontend.focus.corridor_width_m / 2.0
+        dem = make_run_dem(returns, poses, sequence.ground_truth, run.config.dem, corridor_half_width_m=half_width)
+    except DemGraphError as exc:
+        log.warning("no DEM for this run: %s", exc)
+        run.metrics["dem"] = {"error": str(exc)}
+        return None
+    run.metrics["dem"] = {k: v for k, v in dem.metrics.items() if not k.startswith("_")}
+    return dem
 
 
 def compute_metrics(sequence: Sequence, run: RunResult) -> dict:
@@ -182,6 +202,21 @@ def summary_lines(run: RunResult) -> list[str]:
     if "trajectory" in m:
         tr = m["trajectory"]
         lines.append(f"ATE RMSE {tr['ate_rmse_m']:.3f} m, final error {tr['final_error_m']:.3f} m over {tr['distance_m']:.1f} m: drift {tr['drift_percent']:.2f} %")
+    d = m.get("dem")
+    if d and "error" not in d:
+        line = f"DEM: {d['covered_cells']} cells of {d['resolution_m']:g} m from {d['measurements']} measurements, rebuilt in {d['rebuild_s']:.2f} s"
+        if "height_error_laser_cells" in d:
+            e, c = d["height_error_laser_cells"], d["corridor"]
+            line += f"; height RMSE {100 * e['rmse_m']:.1f} cm over the laser-swept cells, corridor {100 * c['coverage']:.0f} % covered"
+        lines.append(line)
+        if "local_window" in d and d["local_window"].get("frames_with_data"):
+            lw = d["local_window"]
+            line = f"local DEM, {lw['width_m']:g} m window ahead (Fig. 8): mean error {100 * lw['mean_of_mean_m']:.1f} cm, std {100 * lw['mean_of_std_m']:.1f} cm"
+            if "relative_mean_abs_mean_m" in lw:
+                line += f"; relative to the vehicle: |mean| {100 * lw['relative_mean_abs_mean_m']:.1f} cm, std {100 * lw['relative_mean_of_std_m']:.1f} cm"
+            lines.append(line)
+    elif d:
+        lines.append(f"DEM: not made ({d['error']})")
     return lines
 
 
@@ -196,7 +231,12 @@ def write_run(run: RunResult, out_dir: str | Path) -> dict[str, Path]:
         "var_y_m2": cov[:, 1, 1].astype(np.float32),
         "var_z_m2": cov[:, 2, 2].astype(np.float32),
         "n_tracked": pts["n_tracked"],
+        "created_t_s": pts["created_t_s"],
     }
     if not res.frames:
         raise DemGraphError("the run produced no pose: nothing to write")
-    return write_run_outputs(out_dir, res.trajectory(), pts["xyz"], attributes, run.metrics, run.config.model_dump(mode="json"), res.extra_trajectories())
+    paths = write_run_outputs(out_dir, res.trajectory(), pts["xyz"], attributes, run.metrics, run.config.model_dump(mode="json"), res.extra_trajectories())
+    paths["poses"] = save_run_poses(Path(out_dir) / POSES_NPZ, pose_track_from_result(res))
+    if run.dem is not None:
+        paths.update(run.dem.write(out_dir))
+    return paths

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dem_graph.datasets.events import Event
+from dem_graph.datasets.events import Event, LaserScan
 from dem_graph.geometry.grid import ElevationGrid
 from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.trajectory import Trajectory
@@ -56,6 +56,17 @@ class Sequence(abc.ABC):
     def event_count(self) -> int | None:
         """How many events :meth:`events` yields, when known cheaply (for progress bars)."""
         return None
+
+    def laser_scans(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every scan's time (n,) and ranges (n, beams), metres, NaN for no return.
+
+        This default reads every event (images included); datasets that can, read the scans alone.
+        """
+        scans = [e for e in self.events() if isinstance(e, LaserScan)]
+        beams = self.rig.laser.beams.count
+        if not scans:
+            return np.zeros(0), np.zeros((0, beams))
+        return np.array([s.t_s for s in scans]), np.array([s.ranges_m for s in scans], dtype=float)
 
     @abc.abstractmethod
     def events(self) -> Iterator[Event]:

@@ -422,6 +422,9 @@ class FolderSequence(Sequence):
     def event_count(self) -> int:
         return self.n_frames + self.n_scans + self.n_odometry
 
+    def laser_scans(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._scan_t_s.copy(), self._scan_ranges_m.astype(float)
+
     def events(self) -> Iterator[Event]:
         """Every event in time order (odometry, then laser, then camera at equal times); images read lazily.
 

@@ -158,6 +158,11 @@ class SimulatedSequence(Sequence):
             T_meas[:3, 3] += T_rel[:3, :3] @ xi[3:]
             yield (float(times[k]), 0, Odometry(float(times[k]), float(stamps[k]), T_meas, spec.increment_covariance(distance), k))
 
+    def laser_scans(self) -> tuple[np.ndarray, np.ndarray]:
+        """The scans :meth:`events` yields (same noise), without rendering a single image."""
+        scans = [scan for _, _, scan in self._laser_events(_rngs(self.world.config.seed)["laser"])]
+        return np.array([s.t_s for s in scans]), np.array([s.ranges_m for s in scans], dtype=float).reshape(len(scans), -1)
+
     def noiseless_scans(self) -> Iterator[np.ndarray]:
         """The laser ranges of every scan without noise (for pictures and tests)."""
         for _, _, scan in self._laser_events(None):

@@ -1,0 +1,166 @@
+"""Ground measurements for the DEM: every laser return and every map point, in the world frame, each
+with its own height variance (the paper's Eq. 4, with the uncertainty carried along).
+
+A laser return is placed with the estimated body pose at its scan's own time (rotation slerp and
+linear translation between the two nearest estimated poses) and ``T_body_laser``. Its height
+variance is the range noise and the pose covariance at that time, propagated to first order:
+
+    p_world = R_world_body (R_body_laser r d + t_body_laser) + t_world_body
+    var_z   = J P J^T + (a . R_body_laser d)^2 sigma_r^2,   a = R_world_body^T e_z,  J = [p_body x a, a]
+
+with ``P`` the 6x6 pose covariance in gtsam's order [rotation, translation] as a right perturbation
+(``T Exp(xi)``), interpolated linearly between the two poses. Returns are vectorised over the
+whole log: no Python loop over scans or beams.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from dem_graph.errors import DemGraphError
+from dem_graph.geometry.rig import SensorRig
+from dem_graph.geometry.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
+
+LASER = 0
+MAP_POINT = 1
+
+
+@dataclass(frozen=True)
+class PoseTrack:
+    """Estimated body poses with their covariances, queryable at any time inside their span."""
+
+    t_s: np.ndarray  # (N,)
+    T_world_body: np.ndarray  # (N, 4, 4)
+    covariance: np.ndarray  # (N, 6, 6) [rotation, translation], right perturbation
+
+    def __post_init__(self):
+        n = len(np.atleast_1d(self.t_s))
+        if np.shape(self.T_world_body) != (n, 4, 4) or np.shape(self.covariance) != (n, 6, 6):
+            raise DemGraphError(
+                f"pose track arrays disagree: {n} times, poses {np.shape(self.T_world_body)}, covariances {np.shape(self.covariance)}"
+            )
+        if n == 0:
+            raise DemGraphError("the pose track is empty: no pose to place the laser returns with")
+        if not (np.all(np.isfinite(self.T_world_body)) and np.all(np.isfinite(self.covariance))):
+            raise DemGraphError("the pose track holds NaN or infinite values")
+        self.trajectory  # validates the times (strictly increasing)  # noqa: B018
+
+    @property
+    def trajectory(self) -> Trajectory:
+        return Trajectory.from_poses(self.t_s, self.T_world_body)
+
+    def covers(self, t_s: np.ndarray) -> np.ndarray:
+        t = np.asarray(t_s, dtype=float)
+        return (t >= self.t_s[0]) & (t <= self.t_s[-1])
+
+    def at(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Poses (M,4,4) and covariances (M,6,6) at the times ``t_s`` (inside the span)."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        T = self.trajectory.at(t)
+        if len(self.t_s) == 1:
+            return T.reshape(-1, 4, 4), np.repeat(self.covariance, len(t), axis=0)
+        hi = np.clip(np.searchsorted(self.t_s, t, side="right"), 1, len(self.t_s) - 1)
+        lo = hi - 1
+        a = np.clip((t - self.t_s[lo]) / (self.t_s[hi] - self.t_s[lo]), 0.0, 1.0)[:, None, None]
+        P = (1.0 - a) * self.covariance[lo] + a * self.covariance[hi]
+        return T.reshape(-1, 4, 4), P
+
+
+@dataclass(frozen=True)
+class GroundReturns:
+    """World-frame ground measurements: position, height variance, time and source (laser or map point)."""
+
+    xyz_m: np.ndarray  # (N, 3) world
+    var_z_m2: np.ndarray  # (N,)
+    t_s: np.ndarray  # (N,) when measured (a map point: when it was created)
+    source: np.ndarray  # (N,) uint8: LASER or MAP_POINT
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @classmethod
+    def empty(cls) -> GroundReturns:
+        return cls(np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.uint8))
+
+    @classmethod
+    def concatenate(cls, parts: list[GroundReturns]) -> GroundReturns:
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return cls.empty()
+        out = cls(
+            np.concatenate([p.xyz_m for p in parts]),
+            np.concatenate([p.var_z_m2 for p in parts]),
+            np.concatenate([p.t_s for p in parts]),
+            np.concatenate([p.source for p in parts]),
+        )
+        order = np.argsort(out.t_s, kind="stable")
+        return out.select(order)
+
+    def select(self, index: np.ndarray) -> GroundReturns:
+        return GroundReturns(self.xyz_m[index], self.var_z_m2[index], self.t_s[index], self.source[index])
+
+    def until(self, t_s: float) -> GroundReturns:
+        """The measurements taken at or before ``t_s`` (what was known then)."""
+        return self.select(self.t_s <= t_s)
+
+
+def laser_returns_world(scan_t_s: np.ndarray, ranges_m: np.ndarray, rig: SensorRig, poses: PoseTrack) -> GroundReturns:
+    """Every valid laser return of every scan, placed with the pose at its scan's time.
+
+    Beams without a return (NaN), outside the rig's range limits or from scans outside the pose
+    track's span are left out; how many is logged.
+    """
+    scan_t_s = np.asarray(scan_t_s, dtype=float)
+    ranges_m = np.asarray(ranges_m, dtype=float)
+    laser = rig.laser
+    d_laser = laser.beam_directions()
+    if ranges_m.ndim != 2 or ranges_m.shape != (len(scan_t_s), len(d_laser)):
+        raise DemGraphError(f"laser ranges have shape {ranges_m.shape}; expected ({len(scan_t_s)} scans, {len(d_laser)} beams)")
+    if len(scan_t_s) == 0:
+        return GroundReturns.empty()
+    in_span = poses.covers(scan_t_s)
+    if not np.all(in_span):
+        # usual at the ends of a log (a scan after the last frame); the count says if it is more
+        log.info("%d of %d scans lie outside the estimated trajectory's time span: left out of the DEM", int((~in_span).sum()), len(scan_t_s))
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(ranges_m) & (ranges_m >= laser.range_min_m) & (ranges_m <= laser.range_max_m) & in_span[:, None]
+    n_invalid = int((~valid[in_span]).sum())
+    if n_invalid:
+        log.info("%d laser beams without a usable return (NaN or out of range) left out", n_invalid)
+    scan_idx, beam_idx = np.nonzero(valid)
+    if len(scan_idx) == 0:
+        return GroundReturns.empty()
+    T_scan, P_scan = poses.at(scan_t_s[in_span])
+    # index of each valid return's scan among the scans in span
+    span_pos = np.cumsum(in_span) - 1
+    T = T_scan[span_pos[scan_idx]]
+    P = P_scan[span_pos[scan_idx]]
+    T_body_laser = rig.T_body_laser
+    d_body = d_laser @ T_body_laser[:3, :3].T  # (B,3) beam directions in the body frame
+    r = ranges_m[scan_idx, beam_idx]
+    p_body = r[:, None] * d_body[beam_idx] + T_body_laser[:3, 3]
+    R = T[:, :3, :3]
+    xyz = np.einsum("nij,nj->ni", R, p_body) + T[:, :3, 3]
+    a = R[:, 2, :]  # world up in the body frame (rows of R^T e_z)
+    J = np.concatenate([np.cross(p_body, a), a], axis=1)
+    var_pose = np.einsum("ni,nij,nj->n", J, P, J)
+    var_range = (np.einsum("ni,ni->n", a, d_body[beam_idx]) * laser.range_sigma_m) ** 2
+    return GroundReturns(xyz, var_pose + var_range, scan_t_s[scan_idx], np.full(len(r), LASER, dtype=np.uint8))
+
+
+def map_point_returns(xyz_m: np.ndarray, covariance: np.ndarray, created_t_s: np.ndarray) -> GroundReturns:
+    """The estimator's map points as ground measurements, their height variance from their covariance."""
+    xyz = np.asarray(xyz_m, dtype=float).reshape(-1, 3)
+    cov = np.asarray(covariance, dtype=float).reshape(-1, 3, 3)
+    t = np.asarray(created_t_s, dtype=float).reshape(-1)
+    if not (len(xyz) == len(cov) == len(t)):
+        raise DemGraphError(f"map point arrays disagree: {len(xyz)} positions, {len(cov)} covariances, {len(t)} times")
+    return GroundReturns(xyz, cov[:, 2, 2].copy(), t, np.full(len(t), MAP_POINT, dtype=np.uint8))
+
+
+__all__ = ["GroundReturns", "LASER", "MAP_POINT", "PoseTrack", "laser_returns_world", "map_point_returns"]

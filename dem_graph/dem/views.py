@@ -1,0 +1,92 @@
+"""The two views of the DEM the users ask for.
+
+- The global map: every measurement of the run fused on one north-up world grid.
+- The local map at a time ``t``: what was measured up to ``t``, in the vehicle's local frame at
+  ``t``, over the focus area the guidance needs at the vehicle's speed then
+  (:class:`~dem_graph.frontend.focus.FocusArea`).
+
+The local frame has its origin at the body, x along the body's heading and z up (the body frame
+with its roll and pitch taken out). Heights must be measured along gravity for slopes and steps to
+mean anything; on a tilted vehicle the body's own z is not vertical. Local heights are relative to
+the body origin's height.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dem_graph.dem.fusion import FusionConfig, covering_geometry, fuse
+from dem_graph.dem.layers import Dem
+from dem_graph.dem.returns import GroundReturns, PoseTrack
+from dem_graph.dem.traversability import add_traversability
+from dem_graph.geometry.grid import GridGeometry
+
+
+def global_dem(returns: GroundReturns, config: FusionConfig | None = None, geometry: GridGeometry | None = None) -> Dem:
+    """Fuse every measurement on a world grid (by default the one covering them all), with traversability."""
+    config = config or FusionConfig()
+    geometry = geometry or covering_geometry(returns, config)
+    return add_traversability(fuse(returns, geometry, config))
+
+
+def local_frame(T_world_body: np.ndarray) -> np.ndarray:
+    """``T_world_local``: at the body's position, x along its heading, z up."""
+    T = np.asarray(T_world_body, dtype=float)
+    forward = T[:3, 0]
+    yaw = np.arctan2(forward[1], forward[0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    out = np.eye(4)
+    out[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    out[:3, 3] = T[:3, 3]
+    return out
+
+
+def speed_at(poses: PoseTrack, t_s: float, span_s: float = 0.5) -> float:
+    """Mean speed over the ``span_s`` before ``t_s`` (or after it, at the start of the track), m/s."""
+    t0 = max(poses.t_s[0], t_s - span_s)
+    t1 = min(poses.t_s[-1], max(t_s, t0 + span_s))
+    if t1 <= t0:
+        return float("nan")
+    p = poses.trajectory.at(np.array([t0, t1]))[:, :3, 3]
+    return float(np.linalg.norm(p[1] - p[0]) / (t1 - t0))
+
+
+def to_local(returns: GroundReturns, T_world_local: np.ndarray) -> GroundReturns:
+    """``returns`` in the local frame (a rotation about z: heights and their variances keep their meaning)."""
+    R, t = T_world_local[:3, :3], T_world_local[:3, 3]
+    return GroundReturns((returns.xyz_m - t) @ R, returns.var_z_m2, returns.t_s, returns.source)
+
+
+def local_dem(
+    returns: GroundReturns,
+    poses: PoseTrack,
+    t_s: float,
+    x_range_m: tuple[float, float],
+    half_width_m: float,
+    config: FusionConfig | None = None,
+    history_s: float | None = None,
+) -> Dem:
+    """The local DEM at ``t_s`` over ``x_range_m`` ahead and ``half_width_m`` to each side (local frame).
+
+    Only measurements taken at or before ``t_s`` are fused (within ``history_s`` of it, when given,
+    which bounds the work on a long run).
+    """
+    config = config or FusionConfig()
+    T_world_local = local_frame(poses.at(np.array([t_s]))[0][0])
+    t = returns.t_s
+    known = t <= t_s
+    if history_s is not None:
+        known &= t >= t_s - history_s
+    recent = returns.select(known)
+    # a cheap cut in the world frame first: the circle holding the rectangle
+    reach = np.hypot(max(abs(x_range_m[0]), abs(x_range_m[1])), half_width_m) + config.resolution_m
+    near = np.sum((recent.xyz_m[:, :2] - T_world_local[:2, 3]) ** 2, axis=1) <= reach * reach
+    local = to_local(recent.select(near), T_world_local)
+    geometry = GridGeometry.covering(x_range_m[0], -half_width_m, x_range_m[1], half_width_m, config.resolution_m)
+    dem = add_traversability(fuse(local, geometry, config))
+    dem.frame = "local"
+    dem.meta = {"t_s": float(t_s), "T_world_local": T_world_local}
+    return dem
+
+
+__all__ = ["global_dem", "local_dem", "local_frame", "speed_at", "to_local"]

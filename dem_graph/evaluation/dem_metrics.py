@@ -1,0 +1,155 @@
+"""A DEM against the ground-truth terrain: height errors, coverage of the driven corridor, and the
+paper's Fig. 8 measure (the local DEM's height error ahead of the vehicle, frame by frame).
+
+Truth heights are the ground-truth elevation grid interpolated at each DEM cell's centre.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from dem_graph.dem.fusion import FusionConfig
+from dem_graph.dem.layers import Dem
+from dem_graph.dem.returns import GroundReturns, PoseTrack
+from dem_graph.dem.views import local_dem, local_frame
+from dem_graph.geometry.grid import ElevationGrid
+from dem_graph.geometry.trajectory import Trajectory
+from dem_graph.progress import progress
+
+
+@dataclass(frozen=True)
+class HeightErrors:
+    cells: int
+    rmse_m: float
+    mean_m: float
+    std_m: float
+    p95_abs_m: float
+    max_abs_m: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _truth_at(truth: ElevationGrid, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return np.asarray(truth.height_at(x, y), dtype=float)
+
+
+def height_errors(elevation: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> HeightErrors:
+    """Statistics of ``elevation - truth`` over the cells where both are known (and ``mask``)."""
+    e = np.asarray(elevation, dtype=float) - np.asarray(truth, dtype=float)
+    ok = np.isfinite(e) if mask is None else np.isfinite(e) & mask
+    e = e[ok]
+    if e.size == 0:
+        return HeightErrors(0, *([float("nan")] * 5))
+    a = np.abs(e)
+    return HeightErrors(int(e.size), float(np.sqrt(np.mean(e * e))), float(e.mean()), float(e.std()), float(np.percentile(a, 95)), float(a.max()))
+
+
+def dem_errors(dem: Dem, truth: ElevationGrid) -> HeightErrors:
+    """Height errors of a world-frame DEM over its covered cells (inside the truth's extent)."""
+    x, y = dem.geometry.cell_centers_xy()
+    with np.errstate(invalid="ignore"):
+        t = _truth_at(truth, x.ravel(), y.ravel()).reshape(x.shape)
+    return height_errors(dem.elevation, t)
+
+
+def corridor_mask(dem: Dem, trajectory: Trajectory, half_width_m: float) -> np.ndarray:
+    """Cells whose centre lies within ``half_width_m`` of the driven path (its positions, densified to the cell size)."""
+    p = trajectory.positions_xyz[:, :2]
+    step = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    s = np.r_[0.0, np.cumsum(step)]
+    if s[-1] > 0:
+        s_fine = np.arange(0.0, s[-1] + 1e-9, dem.geometry.resolution_m / 2.0)
+        p = np.stack([np.interp(s_fine, s, p[:, k]) for k in range(2)], axis=1)
+    x, y = dem.geometry.cell_centers_xy()
+    d, _ = cKDTree(p).query(np.stack([x.ravel(), y.ravel()], axis=1), distance_upper_bound=half_width_m + 1e-9)
+    return (d <= half_width_m).reshape(x.shape)
+
+
+def corridor_coverage(dem: Dem, trajectory: Trajectory, half_width_m: float) -> dict:
+    """How much of the driven corridor has a fused height (the corridor: within ``half_width_m`` of the path)."""
+    corridor = corridor_mask(dem, trajectory, half_width_m)
+    n = int(corridor.sum())
+    covered = int((corridor & dem.covered).sum())
+    return {"corridor_cells": n, "covered_cells": covered, "coverage": covered / n if n else float("nan"), "half_width_m": half_width_m}
+
+
+@dataclass(frozen=True)
+class LocalErrorSeries:
+    """Per-frame height error of the local DEM in a window ahead (the paper's Fig. 8).
+
+    Two comparisons of the same local DEM:
+
+    - ``mean_m``, ``std_m`` (the paper's): against the terrain where the estimate puts the cells
+      in the world, so the trajectory's drift is part of the error;
+    - ``relative_mean_m``, ``relative_std_m``: against the terrain in the true local frame (the
+      ground-truth pose at that time), relative to the true body height: the error of the map the
+      guidance steers by, whatever the drift.
+    """
+
+    t_s: np.ndarray
+    mean_m: np.ndarray
+    std_m: np.ndarray
+    relative_mean_m: np.ndarray
+    relative_std_m: np.ndarray
+    covered_fraction: np.ndarray
+
+    def summary(self) -> dict:
+        ok = np.isfinite(self.mean_m)
+        if not np.any(ok):
+            return {"frames": int(len(self.t_s)), "frames_with_data": 0}
+        out = {
+            "frames": int(len(self.t_s)),
+            "frames_with_data": int(ok.sum()),
+            "mean_of_mean_m": float(np.mean(self.mean_m[ok])),
+            "mean_abs_mean_m": float(np.mean(np.abs(self.mean_m[ok]))),
+            "mean_of_std_m": float(np.mean(self.std_m[ok])),
+            "covered_fraction_median": float(np.median(self.covered_fraction)),
+        }
+        rel = np.isfinite(self.relative_mean_m)
+        if np.any(rel):
+            out["relative_mean_abs_mean_m"] = float(np.mean(np.abs(self.relative_mean_m[rel])))
+            out["relative_mean_of_std_m"] = float(np.mean(self.relative_std_m[rel]))
+        return out
+
+
+def _truth_in_local(truth: ElevationGrid, T_world_local: np.ndarray, x_local: np.ndarray, y_local: np.ndarray) -> np.ndarray:
+    """Truth heights at local cell centres, relative to the local frame's origin height."""
+    T = T_world_local
+    xw = T[0, 3] + T[0, 0] * x_local + T[0, 1] * y_local
+    yw = T[1, 3] + T[1, 0] * x_local + T[1, 1] * y_local
+    with np.errstate(invalid="ignore"):
+        return _truth_at(truth, xw.ravel(), yw.ravel()).reshape(x_local.shape) - T[2, 3]
+
+
+def local_error_series(
+    returns: GroundReturns,
+    poses: PoseTrack,
+    truth: ElevationGrid,
+    times_s: np.ndarray,
+    x_range_m: tuple[float, float] = (1.0, 6.0),
+    half_width_m: float = 2.5,
+    config: FusionConfig | None = None,
+    history_s: float = 10.0,
+    truth_trajectory: Trajectory | None = None,
+) -> LocalErrorSeries:
+    """At each time, the local DEM over the window against the truth (see :class:`LocalErrorSeries`)."""
+    times_s = np.asarray(times_s, dtype=float)
+    rows = []
+    for t in progress(times_s, desc="local DEM errors", unit="frame"):
+        dem = local_dem(returns, poses, float(t), x_range_m, half_width_m, config, history_s=history_s)
+        xl, yl = dem.geometry.cell_centers_xy()
+        err = height_errors(dem.elevation, _truth_in_local(truth, dem.meta["T_world_local"], xl, yl))
+        rel_mean = rel_std = float("nan")
+        if truth_trajectory is not None and truth_trajectory.t_s[0] <= t <= truth_trajectory.t_s[-1]:
+            rel = height_errors(dem.elevation, _truth_in_local(truth, local_frame(truth_trajectory.at(float(t))), xl, yl))
+            rel_mean, rel_std = rel.mean_m, rel.std_m
+        rows.append((err.mean_m, err.std_m, rel_mean, rel_std, float(dem.covered.mean())))
+    a = np.array(rows, dtype=float).reshape(-1, 5)
+    return LocalErrorSeries(times_s, a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4])
+
+
+__all__ = ["HeightErrors", "LocalErrorSeries", "corridor_coverage", "corridor_mask", "dem_errors", "height_errors", "local_error_series"]

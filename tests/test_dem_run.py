@@ -1,0 +1,103 @@
+"""A run's DEM: made by `dem-graph run`, made again by `dem-graph dem RUN`, measured against the truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from dem_graph.cli import main
+from dem_graph.dem.build import DemConfig, ground_returns
+from dem_graph.dem.layers import Dem
+from dem_graph.dem.pipeline import make_run_dem
+from dem_graph.dem.returns import GroundReturns, PoseTrack
+from dem_graph.errors import DemGraphError
+
+
+def _truth_track(sequence, dt_s=0.04) -> PoseTrack:
+    gt = sequence.ground_truth.trajectory
+    t = np.arange(gt.t_s[0], gt.t_s[-1] + 1e-9, dt_s)
+    return PoseTrack(t, gt.at(t), np.zeros((len(t), 6, 6)))
+
+
+def test_with_ground_truth_poses_the_smoke_dem_and_its_local_window_are_within_the_range_noise(smoke_log):
+    poses = _truth_track(smoke_log)
+    returns = ground_returns(smoke_log, poses)
+    run_dem = make_run_dem(returns, poses, smoke_log.ground_truth, DemConfig(local_every_n_frames=1))
+    m = run_dem.metrics
+    sigma = smoke_log.rig.laser.range_sigma_m
+    assert m["height_error_laser_cells"]["cells"] > 500
+    assert m["height_error_laser_cells"]["rmse_m"] < 0.5 * sigma
+    lw = m["local_window"]
+    assert lw["frames_with_data"] > 0.8 * lw["frames"]
+    # exact poses: the paper's measure and the vehicle-relative one agree, and both are unbiased
+    series = m["_local_series"]
+    ok = np.isfinite(series.mean_m)
+    np.testing.assert_allclose(series.mean_m[ok], series.relative_mean_m[ok], atol=1e-5)
+    assert lw["mean_abs_mean_m"] < 0.25 * sigma
+    assert lw["mean_of_std_m"] < sigma
+
+
+def test_no_measurement_at_all_is_a_clear_error():
+    track = PoseTrack(np.array([0.0, 1.0]), np.stack([np.eye(4)] * 2), np.zeros((2, 6, 6)))
+    with pytest.raises(DemGraphError, match="no ground measurement"):
+        make_run_dem(GroundReturns.empty(), track)
+
+
+@pytest.fixture(scope="module")
+def run_folder(tmp_path_factory):
+    root = tmp_path_factory.mktemp("dem_run")
+    log = root / "smoke"
+    r = CliRunner().invoke(main, ["--no-progress", "simulate", "--scenario", "smoke", "--seed", "7", "--length-m", "1.5", "--out", str(log)])
+    assert r.exit_code == 0, r.output
+    out = root / "run"
+    r = CliRunner().invoke(main, ["--no-progress", "run", str(log), "--estimator", "ptpm", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "DEM:" in r.output
+    return log, out
+
+
+def test_dem_command_makes_the_runs_dem_again_from_its_saved_poses(run_folder, tmp_path):
+    log, out = run_folder
+    for name in ("dem.tif", "dem.npz", "dem.png", "cloud.ply", "poses.npz"):
+        assert (out / name).is_file(), name
+    again = tmp_path / "again"
+    r = CliRunner().invoke(main, ["--no-progress", "dem", str(out), "--out", str(again)])  # the dataset from metrics.json
+    assert r.exit_code == 0, r.output
+    a, b = Dem.load_npz(out / "dem.npz"), Dem.load_npz(again / "dem.npz")
+    assert a.geometry == b.geometry
+    for name in ("elevation", "count"):
+        np.testing.assert_array_equal(a.layers[name], b.layers[name])
+    # map points' variances are stored as float32 in points.ply
+    np.testing.assert_allclose(a.layers["variance"], b.layers["variance"], rtol=1e-6)
+    dem_metrics = json.loads((out / "metrics.json").read_text())["dem"]
+    assert dem_metrics["covered_cells"] == int(np.isfinite(a.elevation).sum())
+
+
+def test_dem_command_local_map_at_a_time_holds_only_earlier_measurements(run_folder, tmp_path):
+    log, out = run_folder
+    r = CliRunner().invoke(main, ["--no-progress", "dem", str(out), "--dataset", str(log), "--at", "0.6", "--out", str(tmp_path / "local")])
+    assert r.exit_code == 0, r.output
+    local = Dem.load_npz(tmp_path / "local" / "dem.npz")
+    assert local.frame == "local"
+    assert np.nanmax(local.layers["last_update_s"]) <= 0.6
+    assert local.geometry.x_min_m > 0  # the focus area lies ahead of the body
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["dem", "{tmp}/nowhere"], "run folder not found"),
+        (["dem", "{tmp}", "--dataset", "{log}"], "poses.npz: not found"),
+        (["dem", "{run}", "--dataset", "{log}", "--at", "99"], "outside the run's poses"),
+    ],
+)
+def test_dem_command_bad_input_is_one_line(run_folder, tmp_path, args, message):
+    log, out = run_folder
+    argv = ["--no-progress", *[a.format(tmp=tmp_path, log=log, run=out) for a in args]]
+    r = CliRunner().invoke(main, argv)
+    assert r.exit_code == 2
+    assert message in r.output and "Traceback" not in r.output
+    assert len(r.output.strip().splitlines()) == 1
