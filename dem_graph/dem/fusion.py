@@ -47,8 +47,11 @@ class FusionConfig(StrictModel):
     margin_m: float = Field(0.5, ge=0, description="the global grid extends this far beyond the measurements, metres")
 
 
-def _cell_medians(cell: np.ndarray, z: np.ndarray, n_cells: int) -> np.ndarray:
-    """Lower median height of each cell (NaN where empty), from one sort of (cell, quantised height) keys."""
+def _cell_order_stats(cell: np.ndarray, z: np.ndarray, n_cells: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Lower median, minimum and maximum height of each cell (NaN where empty) and its number of
+    measurements, from one sort of
+    (cell, quantised height) keys; heights to within half a quantum (0.05 mm for heights spanning
+    less than 1.6 km)."""
     z_lo, z_hi = float(z.min()), float(z.max())
     quantum = max(1e-4, (z_hi - z_lo) / (2**_Z_BITS - 2))
     key = cell << _Z_BITS
@@ -59,11 +62,16 @@ def _cell_medians(cell: np.ndarray, z: np.ndarray, n_cells: int) -> np.ndarray:
     key.sort()
     cells_sorted = key >> _Z_BITS
     starts = np.flatnonzero(np.r_[True, cells_sorted[1:] != cells_sorted[:-1]])
-    counts = np.diff(np.r_[starts, len(key)])
-    median = np.full(n_cells, np.nan)
-    mid = key[starts + (counts - 1) // 2]
-    median[mid >> _Z_BITS] = z_lo + (mid & (2**_Z_BITS - 1)) * quantum
-    return median
+    ends = np.r_[starts[1:], len(key)] - 1
+    out = []
+    for at in (starts + (ends - starts) // 2, starts, ends):
+        values = np.full(n_cells, np.nan)
+        k = key[at]
+        values[k >> _Z_BITS] = z_lo + (k & (2**_Z_BITS - 1)) * quantum
+        out.append(values)
+    n = np.zeros(n_cells)
+    n[cells_sorted[starts]] = ends - starts + 1
+    return out[0], out[1], out[2], n
 
 
 def fuse(returns: GroundReturns, geometry: GridGeometry, config: FusionConfig | None = None) -> Dem:
@@ -81,8 +89,12 @@ def fuse(returns: GroundReturns, geometry: GridGeometry, config: FusionConfig | 
     if not np.all(finite):
         log.warning("%d of %d ground measurements have NaN or infinite values: left out of the DEM", int((~finite).sum()), len(finite))
     # cell (row, col) as in GridGeometry.cell_index, in fewer passes over the data
-    col = np.floor((xyz[:, 0] - geometry.x_min_m) / geometry.resolution_m)
-    row = np.floor((geometry.y_max_m - xyz[:, 1]) / geometry.resolution_m)
+    col = xyz[:, 0] - geometry.x_min_m
+    col /= geometry.resolution_m
+    np.floor(col, out=col)
+    row = geometry.y_max_m - xyz[:, 1]
+    row /= geometry.resolution_m
+    np.floor(row, out=row)
     with np.errstate(invalid="ignore"):
         keep = finite & (col >= 0) & (col < shape[1]) & (row >= 0) & (row < shape[0])
     row *= shape[1]
@@ -103,26 +115,26 @@ def fuse(returns: GroundReturns, geometry: GridGeometry, config: FusionConfig | 
     var_i = var + config.gate_floor_m**2  # a measurement's part of the gate's variance
 
     def gate(reference: np.ndarray, var_reference: np.ndarray) -> np.ndarray:
-        d = z - reference[cell]
+        d = z - np.take(reference, cell)
         d *= d
-        bound = var_reference[cell]
+        bound = np.take(var_reference, cell)
         bound += var_i
         bound *= gate2
         return d <= bound
 
     # first gate: against the cell's median, whose variance is about pi/2 that of the mean
-    median = _cell_medians(cell, z, n_cells)
+    median, z_min, z_max, n_all = _cell_order_stats(cell, z, n_cells)
     with np.errstate(divide="ignore"):
         var_median = (np.pi / 2.0) / np.bincount(cell, weights=w, minlength=n_cells)
     inlier = gate(median, var_median)
     # then against the inliers' fused height (what a Kalman filter gates against); the weights
     # times the inlier mask keep every array at full length
-    for _ in range(config.gate_passes + 1):
+    for gate_pass in range(config.gate_passes + 1):
         W = np.bincount(cell, weights=w * inlier, minlength=n_cells)
         with np.errstate(invalid="ignore", divide="ignore"):
             h = np.bincount(cell, weights=wz * inlier, minlength=n_cells) / W
             var_h = 1.0 / W
-        if _ == config.gate_passes:
+        if gate_pass == config.gate_passes:
             break
         # a cell whose measurements all failed the median's gate keeps the median as its reference
         empty = W <= 0
@@ -134,15 +146,21 @@ def fuse(returns: GroundReturns, geometry: GridGeometry, config: FusionConfig | 
     has = count > 0
     elevation = np.where(has, h, np.nan)
     variance = np.where(has, var_h, np.nan)
-    ci, zi, ti = cell[inlier], z[inlier], t[inlier]
-    z_min = np.full(n_cells, np.inf)
-    z_max = np.full(n_cells, -np.inf)
+    outliers = n_all - count
     t_last = np.full(n_cells, -np.inf)
-    np.minimum.at(z_min, ci, zi)
-    np.maximum.at(z_max, ci, zi)
-    np.maximum.at(t_last, ci, ti)
-    outliers = np.bincount(cell, minlength=n_cells) - count
-    laser_count = np.bincount(cell, weights=inlier & laser, minlength=n_cells)
+    np.maximum.at(t_last, cell, t)
+    if np.any(outliers):  # the few cells with a rejected measurement: min, max, time over their inliers only
+        redo = (outliers > 0)[cell] & inlier
+        for values in (z_min, z_max, t_last):
+            values[outliers > 0] = np.nan
+        ci, zi, ti = cell[redo], z[redo], t[redo]
+        lo, hi, last = np.full(n_cells, np.inf), np.full(n_cells, -np.inf), np.full(n_cells, -np.inf)
+        np.minimum.at(lo, ci, zi)
+        np.maximum.at(hi, ci, zi)
+        np.maximum.at(last, ci, ti)
+        fix = (outliers > 0) & has
+        z_min[fix], z_max[fix], t_last[fix] = lo[fix], hi[fix], last[fix]
+    laser_count = count if np.all(laser) else np.bincount(cell, weights=inlier & laser, minlength=n_cells)
     layers = {
         "elevation": elevation,
         "variance": variance,
