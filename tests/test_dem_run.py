@@ -101,3 +101,20 @@ def test_dem_command_bad_input_is_one_line(run_folder, tmp_path, args, message):
     assert r.exit_code == 2
     assert message in r.output and "Traceback" not in r.output
     assert len(r.output.strip().splitlines()) == 1
+
+
+def test_a_run_without_any_laser_return_makes_its_dem_from_the_map_points_alone(smoke_log):
+    from dataclasses import replace
+
+    from dem_graph.datasets.events import LaserScan
+    from dem_graph.run import RunConfig, run_estimator
+
+    blind = smoke_log.replace_events([replace(e, ranges_m=e.ranges_m * np.nan) if isinstance(e, LaserScan) else e for e in smoke_log.events()])
+    run = run_estimator(blind, RunConfig(estimator="ptpm", max_frames=20))
+    assert run.error is None
+    d = run.metrics["dem"]
+    assert d["laser_returns"] == 0
+    assert d["measurements"] == run.metrics["map_points"] > 0
+    dem = run.dem.dem
+    assert np.all(dem.layers["laser_count"] == 0)
+    assert np.all(np.isfinite(dem.variance[dem.covered]))
