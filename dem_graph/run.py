@@ -118,7 +118,7 @@ def run_dem(run: RunResult, sequence: Sequence) -> RunDem | None:
         log.warning("no DEM for this run: %s", exc)
         run.metrics["dem"] = {"error": str(exc)}
         return None
-    run.metrics["dem"] = {k: v for k, v in dem.metrics.items() if not k.startswith("_")}
+    run.metrics["dem"] = dem.metrics
     return dem
 
 
@@ -236,7 +236,8 @@ def write_run(run: RunResult, out_dir: str | Path) -> dict[str, Path]:
     if not res.frames:
         raise DemGraphError("the run produced no pose: nothing to write")
     paths = write_run_outputs(out_dir, res.trajectory(), pts["xyz"], attributes, run.metrics, run.config.model_dump(mode="json"), res.extra_trajectories())
-    paths["poses"] = save_run_poses(Path(out_dir) / POSES_NPZ, pose_track_from_result(res))
+    poses = run.dem.poses if run.dem is not None else pose_track_from_result(res)
+    paths["poses"] = save_run_poses(Path(out_dir) / POSES_NPZ, poses)
     if run.dem is not None:
         paths.update(run.dem.write(out_dir))
     return paths

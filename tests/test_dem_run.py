@@ -33,7 +33,7 @@ def test_with_ground_truth_poses_the_smoke_dem_and_its_local_window_are_within_t
     lw = m["local_window"]
     assert lw["frames_with_data"] > 0.8 * lw["frames"]
     # exact poses: the paper's measure and the vehicle-relative one agree, and both are unbiased
-    series = m["_local_series"]
+    series = run_dem.local_series
     ok = np.isfinite(series.mean_m)
     np.testing.assert_allclose(series.mean_m[ok], series.relative_mean_m[ok], atol=1e-5)
     assert lw["mean_abs_mean_m"] < 0.25 * sigma

@@ -88,19 +88,12 @@ def fuse(returns: GroundReturns, geometry: GridGeometry, config: FusionConfig | 
     finite = np.isfinite(xyz[:, 0] + xyz[:, 1] + xyz[:, 2] + var) & (var >= 0)  # a sum is finite only if every term is
     if not np.all(finite):
         log.warning("%d of %d ground measurements have NaN or infinite values: left out of the DEM", int((~finite).sum()), len(finite))
-    # cell (row, col) as in GridGeometry.cell_index, in fewer passes over the data
-    col = xyz[:, 0] - geometry.x_min_m
-    col /= geometry.resolution_m
-    np.floor(col, out=col)
-    row = geometry.y_max_m - xyz[:, 1]
-    row /= geometry.resolution_m
-    np.floor(row, out=row)
-    with np.errstate(invalid="ignore"):
-        keep = finite & (col >= 0) & (col < shape[1]) & (row >= 0) & (row < shape[0])
+    row, col, inside = geometry.cell_index(xyz[:, 0], xyz[:, 1])
+    keep = finite & inside
     row *= shape[1]
     row += col
     all_kept = bool(np.all(keep))
-    cell = (row if all_kept else np.where(keep, row, 0)).astype(np.int64)
+    cell = row if all_kept else np.where(keep, row, 0)
     z = xyz[:, 2]
     var = np.maximum(var, config.min_variance_m2)
     t = np.asarray(returns.t_s, dtype=float)
@@ -149,10 +142,8 @@ def fuse(returns: GroundReturns, geometry: GridGeometry, config: FusionConfig | 
     outliers = n_all - count
     t_last = np.full(n_cells, -np.inf)
     np.maximum.at(t_last, cell, t)
-    if np.any(outliers):  # the few cells with a rejected measurement: min, max, time over their inliers only
+    if np.any(outliers):  # the few cells with a rejected measurement: min, max, time over their inliers only (cells left without one are NaN below)
         redo = (outliers > 0)[cell] & inlier
-        for values in (z_min, z_max, t_last):
-            values[outliers > 0] = np.nan
         ci, zi, ti = cell[redo], z[redo], t[redo]
         lo, hi, last = np.full(n_cells, np.inf), np.full(n_cells, -np.inf), np.full(n_cells, -np.inf)
         np.minimum.at(lo, ci, zi)

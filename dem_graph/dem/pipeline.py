@@ -14,13 +14,14 @@ from pathlib import Path
 import numpy as np
 
 from dem_graph.datasets.base import GroundTruth
-from dem_graph.dem.build import DemConfig
+from dem_graph.dem.build import DemConfig, ground_returns, load_run_points, load_run_poses
 from dem_graph.dem.export import write_dem_outputs
 from dem_graph.dem.layers import Dem
 from dem_graph.dem.returns import GroundReturns, PoseTrack
-from dem_graph.dem.views import global_dem, local_dem, to_local
+from dem_graph.dem.views import global_dem, local_dem, speed_at, to_local
 from dem_graph.errors import DemGraphError
-from dem_graph.evaluation.dem_metrics import corridor_coverage, dem_errors, height_errors, local_error_series
+from dem_graph.evaluation.dem_metrics import LocalErrorSeries, corridor_coverage, height_errors, local_error_series, truth_at_cells
+from dem_graph.frontend.focus import FocusArea, FocusConfig
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +31,8 @@ class RunDem:
     dem: Dem
     returns: GroundReturns
     poses: PoseTrack
-    metrics: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)  # plain numbers, for metrics.json
+    local_series: LocalErrorSeries | None = None  # the Fig. 8 measure frame by frame, for figures
 
     def write(self, out_dir: str | Path) -> dict[str, Path]:
         """The DEM's files; a local map's cloud and path are in its local frame."""
@@ -48,10 +50,8 @@ def evaluate_dem(dem: Dem, truth: GroundTruth, corridor_half_width_m: float) -> 
     out: dict = {}
     if truth.elevation is None:
         return out
-    x, y = dem.geometry.cell_centers_xy()
-    with np.errstate(invalid="ignore"):
-        z_truth = np.asarray(truth.elevation.height_at(x.ravel(), y.ravel()), dtype=float).reshape(x.shape)
-    out["height_error"] = dem_errors(dem, truth.elevation).as_dict()
+    z_truth = truth_at_cells(dem, truth.elevation)
+    out["height_error"] = height_errors(dem.elevation, z_truth).as_dict()
     out["height_error_laser_cells"] = height_errors(dem.elevation, z_truth, dem.layers["laser_count"] > 0).as_dict()
     out["corridor"] = corridor_coverage(dem, truth.trajectory, corridor_half_width_m)
     return out
@@ -70,7 +70,7 @@ def make_run_dem(
     if len(returns) == 0:
         raise DemGraphError("no ground measurement (no laser return and no map point): nothing to make a DEM from")
     start = time.perf_counter()
-    dem = global_dem(returns, config.fusion)
+    dem = global_dem(returns, config.fusion, traversability_window=config.traversability_window)
     rebuild_s = time.perf_counter() - start
     m: dict = {
         "resolution_m": config.fusion.resolution_m,
@@ -81,6 +81,7 @@ def make_run_dem(
         "covered_cells": int(dem.covered.sum()),
         "rebuild_s": rebuild_s,
     }
+    series = None
     if ground_truth is not None:
         m.update(evaluate_dem(dem, ground_truth, corridor_half_width_m))
         if local_errors and ground_truth.elevation is not None:
@@ -94,38 +95,35 @@ def make_run_dem(
                 "width_m": config.local_width_m,
                 **series.summary(),
             }
-            m["_local_series"] = series  # for figures; not written to metrics.json
-    return RunDem(dem, returns, poses, m)
+    return RunDem(dem, returns, poses, m, series)
+
+
+def _require_time(poses: PoseTrack, t_s: float) -> None:
+    if not poses.covers(np.array([t_s]))[0]:
+        raise DemGraphError(f"time {t_s:.3f} s is outside the run's poses [{poses.t_s[0]:.3f}, {poses.t_s[-1]:.3f}] s")
 
 
 def make_local_dem(returns: GroundReturns, poses: PoseTrack, t_s: float, x_range_m: tuple[float, float], half_width_m: float, config: DemConfig | None = None) -> RunDem:
     """The local map at ``t_s`` (what was measured until then), as the guidance asks for it."""
     config = config or DemConfig()
-    if not poses.covers(np.array([t_s]))[0]:
-        raise DemGraphError(f"time {t_s:.3f} s is outside the run's poses [{poses.t_s[0]:.3f}, {poses.t_s[-1]:.3f}] s")
-    dem = local_dem(returns, poses, t_s, x_range_m, half_width_m, config.fusion, history_s=config.local_history_s)
+    _require_time(poses, t_s)
+    dem = local_dem(returns, poses, t_s, x_range_m, half_width_m, config.fusion, history_s=config.local_history_s, traversability_window=config.traversability_window)
     return RunDem(dem, returns.until(t_s), poses, {"t_s": t_s, "covered_cells": int(dem.covered.sum()), "frame": "local"})
 
 
-
-
-def run_folder_dem(run_dir: str | Path, sequence, at_s: float | None = None, config: DemConfig | None = None, focus=None) -> RunDem:
+def run_folder_dem(run_dir: str | Path, sequence, at_s: float | None = None, config: DemConfig | None = None, focus: FocusConfig | None = None) -> RunDem:
     """The DEM of a run folder made again from its saved poses and map points and the dataset's scans:
     the global map, or with ``at_s`` the local map at that time over the focus area the guidance
-    needs at the vehicle's speed then (``focus``: a :class:`~dem_graph.frontend.focus.FocusConfig`)."""
-    from dem_graph.dem.build import ground_returns, load_run_points, load_run_poses
-    from dem_graph.dem.views import speed_at
-    from dem_graph.frontend.focus import FocusArea, FocusConfig
-
+    needs at the vehicle's speed then."""
     config = config or DemConfig()
+    focus = focus or FocusConfig()
     poses = load_run_poses(run_dir)
     points = load_run_points(run_dir) if config.map_points else None
     returns = ground_returns(sequence, poses, points)
     if at_s is None:
-        truth = sequence.ground_truth
-        half_width = (focus or FocusConfig()).corridor_width_m / 2.0
-        return make_run_dem(returns, poses, truth, config, corridor_half_width_m=half_width, local_errors=False)
-    area = FocusArea.for_speed(focus or FocusConfig(), sequence.rig, speed_at(poses, at_s) if poses.covers(np.array([at_s]))[0] else None)
+        return make_run_dem(returns, poses, sequence.ground_truth, config, corridor_half_width_m=focus.corridor_width_m / 2.0, local_errors=False)
+    _require_time(poses, at_s)
+    area = FocusArea.for_speed(focus, sequence.rig, speed_at(poses, at_s))
     return make_local_dem(returns, poses, at_s, (area.x_near_m, area.x_far_m), area.half_width_m, config)
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -50,8 +51,9 @@ class PoseTrack:
             raise DemGraphError("the pose track holds NaN or infinite values")
         self.trajectory  # validates the times (strictly increasing)  # noqa: B018
 
-    @property
+    @cached_property
     def trajectory(self) -> Trajectory:
+        """The poses as a :class:`Trajectory` (built once: every query interpolates through it)."""
         return Trajectory.from_poses(self.t_s, self.T_world_body)
 
     def covers(self, t_s: np.ndarray) -> np.ndarray:

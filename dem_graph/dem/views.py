@@ -22,11 +22,11 @@ from dem_graph.dem.traversability import add_traversability
 from dem_graph.geometry.grid import GridGeometry
 
 
-def global_dem(returns: GroundReturns, config: FusionConfig | None = None, geometry: GridGeometry | None = None) -> Dem:
+def global_dem(returns: GroundReturns, config: FusionConfig | None = None, geometry: GridGeometry | None = None, traversability_window: int = 3) -> Dem:
     """Fuse every measurement on a world grid (by default the one covering them all), with traversability."""
     config = config or FusionConfig()
     geometry = geometry or covering_geometry(returns, config)
-    return add_traversability(fuse(returns, geometry, config))
+    return add_traversability(fuse(returns, geometry, config), traversability_window)
 
 
 def local_frame(T_world_body: np.ndarray) -> np.ndarray:
@@ -65,11 +65,12 @@ def local_dem(
     half_width_m: float,
     config: FusionConfig | None = None,
     history_s: float | None = None,
+    traversability_window: int | None = 3,
 ) -> Dem:
     """The local DEM at ``t_s`` over ``x_range_m`` ahead and ``half_width_m`` to each side (local frame).
 
     Only measurements taken at or before ``t_s`` are fused (within ``history_s`` of it, when given,
-    which bounds the work on a long run).
+    which bounds the work on a long run). ``traversability_window`` None: elevation layers only.
     """
     config = config or FusionConfig()
     T_world_local = local_frame(poses.at(np.array([t_s]))[0][0])
@@ -83,7 +84,9 @@ def local_dem(
     near = np.sum((recent.xyz_m[:, :2] - T_world_local[:2, 3]) ** 2, axis=1) <= reach * reach
     local = to_local(recent.select(near), T_world_local)
     geometry = GridGeometry.covering(x_range_m[0], -half_width_m, x_range_m[1], half_width_m, config.resolution_m)
-    dem = add_traversability(fuse(local, geometry, config))
+    dem = fuse(local, geometry, config)
+    if traversability_window is not None:
+        add_traversability(dem, traversability_window)
     dem.frame = "local"
     dem.meta = {"t_s": float(t_s), "T_world_local": T_world_local}
     return dem

@@ -538,7 +538,6 @@ class Isam2Slam(FrameDrivenEstimator):
         self._sent_T = {k: self.T_kf.copy()}
         self._graph.send(RestartMessage(k, self.T_kf.copy(), self._output_covariance(), priors))
 
-
     def _output_covariance(self) -> np.ndarray:
         """The current pose's covariance: the anchor keyframe's marginal carried to it, plus the
         motion covariance since (6x6, right perturbation)."""

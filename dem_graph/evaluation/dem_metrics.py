@@ -48,12 +48,11 @@ def height_errors(elevation: np.ndarray, truth: np.ndarray, mask: np.ndarray | N
     return HeightErrors(int(e.size), float(np.sqrt(np.mean(e * e))), float(e.mean()), float(e.std()), float(np.percentile(a, 95)), float(a.max()))
 
 
-def dem_errors(dem: Dem, truth: ElevationGrid) -> HeightErrors:
-    """Height errors of a world-frame DEM over its covered cells (inside the truth's extent)."""
+def truth_at_cells(dem: Dem, truth: ElevationGrid) -> np.ndarray:
+    """The truth's height at each cell centre of a world-frame DEM (NaN outside the truth)."""
     x, y = dem.geometry.cell_centers_xy()
     with np.errstate(invalid="ignore"):
-        t = _truth_at(truth, x.ravel(), y.ravel()).reshape(x.shape)
-    return height_errors(dem.elevation, t)
+        return _truth_at(truth, x.ravel(), y.ravel()).reshape(x.shape)
 
 
 def corridor_mask(dem: Dem, trajectory: Trajectory, half_width_m: float) -> np.ndarray:
@@ -140,7 +139,7 @@ def local_error_series(
     times_s = np.asarray(times_s, dtype=float)
     rows = []
     for t in progress(times_s, desc="local DEM errors", unit="frame"):
-        dem = local_dem(returns, poses, float(t), x_range_m, half_width_m, config, history_s=history_s)
+        dem = local_dem(returns, poses, float(t), x_range_m, half_width_m, config, history_s=history_s, traversability_window=None)
         xl, yl = dem.geometry.cell_centers_xy()
         err = height_errors(dem.elevation, _truth_in_local(truth, dem.meta["T_world_local"], xl, yl))
         rel_mean = rel_std = float("nan")
@@ -152,4 +151,4 @@ def local_error_series(
     return LocalErrorSeries(times_s, a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4])
 
 
-__all__ = ["HeightErrors", "LocalErrorSeries", "corridor_coverage", "corridor_mask", "dem_errors", "height_errors", "local_error_series"]
+__all__ = ["HeightErrors", "LocalErrorSeries", "corridor_coverage", "corridor_mask", "height_errors", "local_error_series", "truth_at_cells"]

@@ -63,11 +63,15 @@ class GridGeometry:
 
     def cell_index(self, x_m, y_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Integer (row, col) of the cells holding the points, and a mask of points inside the grid."""
-        row_f, col_f = self.fractional_index(x_m, y_m)
-        row = np.floor(row_f + 0.5).astype(np.int64)
-        col = np.floor(col_f + 0.5).astype(np.int64)
-        inside = (row >= 0) & (row < self.n_rows) & (col >= 0) & (col < self.n_cols)
-        return row, col, inside
+        col_f = np.asarray(x_m, dtype=float) - self.x_min_m  # a new array: the in-place steps below are safe
+        col_f /= self.resolution_m
+        col_f = np.floor(col_f, out=col_f if col_f.ndim else None)
+        row_f = self.y_max_m - np.asarray(y_m, dtype=float)
+        row_f /= self.resolution_m
+        row_f = np.floor(row_f, out=row_f if row_f.ndim else None)
+        with np.errstate(invalid="ignore"):  # NaN coordinates: outside, whatever their integer
+            inside = (row_f >= 0) & (row_f < self.n_rows) & (col_f >= 0) & (col_f < self.n_cols)
+            return row_f.astype(np.int64), col_f.astype(np.int64), inside
 
     def affine(self):
         """The GeoTIFF geotransform as an ``affine.Affine`` (north-up, pixel corners)."""
