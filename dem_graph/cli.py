@@ -200,6 +200,21 @@ def bench_dem_command(dataset, run_dir, n_points, repeats) -> None:
     click.echo(bench_dem(sequence, poses, n_points=n_points, repeats=repeats).table())
 
 
+@main.command("track-noise")
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("--frames", "max_frames", type=int, default=None, help="Camera frames to track [default: all].")
+@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="YAML run configuration (its front end is measured).")
+@_friendly_errors
+def track_noise(dataset, max_frames, config_path) -> None:
+    """Measure the front end's tracking error on a simulated dataset: its size, its correlation from
+    frame to frame, and the frontend.sigma_px that matches them."""
+    from dem_graph.evaluation.tracking_noise import measure_tracking_noise
+    from dem_graph.run import load_run_config
+
+    sequence = _open_dataset(dataset)
+    click.echo(measure_tracking_noise(sequence, max_frames, load_run_config(config_path)).table())
+
+
 @main.command("bench-sim")
 @click.option("--scenario", "scenario_name", default="paper", show_default=True, help="Scenario to benchmark.")
 @click.option("--frames", "n_frames", type=int, default=40, show_default=True, help="Frames to render for the timing.")

@@ -69,10 +69,10 @@ class RunResult:
     dem: RunDem | None = None  # the dense DEM from the run's poses (None if it could not be made)
 
 
-def feed(estimator: Estimator, sequence: Sequence, max_frames: int | None = None) -> Iterator[int]:
+def feed(estimator: Estimator, sequence: Sequence, max_frames: int | None = None, finish: bool = True) -> Iterator[int]:
     """Give the sequence's events to ``estimator`` in time order (with a progress bar), up to
-    ``max_frames`` camera frames, then call its ``finish``. Yields the number of camera frames
-    given so far after each one."""
+    ``max_frames`` camera frames, then call its ``finish`` (unless ``finish`` is false). Yields the
+    number of camera frames given so far after each one."""
     frames = 0
     for event in progress(sequence.events(), total=sequence.event_count(), desc=estimator.name, unit="event"):
         if isinstance(event, CameraFrame):
@@ -85,7 +85,8 @@ def feed(estimator: Estimator, sequence: Sequence, max_frames: int | None = None
             estimator.on_scan(event)
         elif isinstance(event, Odometry):
             estimator.on_odometry(event)
-    estimator.finish()
+    if finish:
+        estimator.finish()
 
 
 def run_estimator(sequence: Sequence, config: RunConfig | None = None, with_dem: bool = True) -> RunResult:
