@@ -48,6 +48,8 @@ class BatchResult:
         res.points.xyz = [self.points.get(landmark_of.get(pid, -1), xyz) for pid, xyz in zip(res.points.point_id, res.points.xyz)]
         res.counters["batch_iterations"] = self.iterations
         res.counters["batch_factors"] = self.n_factors
+        res.counters["batch_build_ms"] = round(1000 * self.build_s)
+        res.counters["batch_optimize_ms"] = round(1000 * self.optimize_s)
         return res
 
 
