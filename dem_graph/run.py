@@ -193,6 +193,12 @@ def load_run_config(
     return config
 
 
+def run_folder_config(run_dir: str | Path) -> RunConfig:
+    """The configuration a run folder was made with (its ``config.yaml``), the defaults if it has none."""
+    path = Path(run_dir) / "config.yaml"
+    return load_run_config(path) if path.is_file() else RunConfig()
+
+
 def summary_lines(run: RunResult) -> list[str]:
     m = run.metrics
     lines = [f"{m.get('estimator')}: {m.get('frames', 0)} frames in {m.get('elapsed_s', 0.0):.1f} s"]
