@@ -182,6 +182,31 @@ def evaluate(run_dir, dataset, out_path) -> None:
 
 
 @main.command()
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Folder for the run folders, summary.json and the report.")
+@click.option("--estimators", default="gm,ptpm,isam2,isam2-batch", show_default=True, help="Comma-separated estimators to run.")
+@click.option("--max-frames", type=int, default=None, help="Stop each run after this many camera frames.")
+@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="YAML run configuration shared by every run (its estimator is ignored).")
+@_friendly_errors
+def compare(dataset, out_dir, estimators, max_frames, config_path) -> None:
+    """Run the estimators on the same data and settings; print one table, write each run into
+    OUT/<estimator>/, OUT/summary.json, OUT/report.md and a self-contained OUT/report.html."""
+    from dem_graph.evaluation.compare import compare as run_comparison
+    from dem_graph.evaluation.compare import parse_estimators
+    from dem_graph.run import load_run_config
+
+    names = parse_estimators(estimators)
+    config = load_run_config(config_path, max_frames=max_frames)
+    result = run_comparison(_open_dataset(dataset), out_dir, names, config, dataset=Path(dataset).resolve())
+    click.echo(result.table())
+    click.echo(f"report: {result.paths['report_html']} (and report.md); summary: {result.paths['summary']}")
+    failed = [r for r in result.runs if r.status == "failed"]
+    if failed:
+        click.echo(f"dem-graph: error: {len(failed)} of {len(result.runs)} runs failed ({'; '.join(f'{r.estimator}: {r.error}' for r in failed)})", err=True)
+        sys.exit(2)
+
+
+@main.command()
 @click.option("--estimators", default="gm,ptpm,isam2,isam2-process", show_default=True, help="Comma-separated estimators (gm, ptpm, isam2, isam2-process: isam2 with its graph in a second process).")
 @click.option("--points", default="50,100,130,150,200,300", show_default=True, help="Comma-separated caps on live points.")
 @click.option("--scenario", "scenario_name", default="demo", show_default=True, help="Simulated scenario to replay.")
