@@ -78,6 +78,7 @@ class Comparison:
     max_frames: int | None = None
     best_dem: BestDem | None = None
     paths: dict[str, Path] = field(default_factory=dict)  # summary, report_md, report_html and each figure
+    figure_error: str | None = None  # why the figures are missing, if they are
 
     def rows(self) -> list[list[str]]:
         """One row per estimator: its name, each headline column as shown, its status."""
@@ -184,7 +185,11 @@ def compare(
         comparison.runs.append(entry)
         if dem is not None and (comparison.best_dem is None or dem.rmse_m < comparison.best_dem.rmse_m):
             comparison.best_dem = dem
-    comparison.paths.update(write_figures(comparison, sequence, config))
+    try:
+        comparison.paths.update(write_figures(comparison, sequence, config))
+    except DemGraphError as exc:  # the runs and their numbers are kept: only the pictures are lost
+        log.warning("the comparison's figures could not be drawn: %s", exc)
+        comparison.figure_error = one_line(exc)
     comparison.paths["summary"] = write_json(out_dir / SUMMARY_JSON, comparison.as_dict(), "the comparison summary")
     md, html = report_page(comparison, config).write(out_dir / REPORT_MD, out_dir / REPORT_HTML)
     comparison.paths.update(report_md=md, report_html=html)
@@ -239,6 +244,8 @@ def report_page(comparison: Comparison, config: RunConfig) -> ReportPage:
         "deviation of the height error ahead of the vehicle; time per frame includes tracking; points/frame: live points, median.",
     ]
     notes = [f"{r.estimator}: {r.status_text()}" for r in comparison.runs if r.status != "ok"]
+    if comparison.figure_error:
+        notes.append(f"figures not drawn: {comparison.figure_error}")
     if comparison.best_dem is not None:
         notes.append(f"best DEM: {comparison.best_dem.estimator} ({100 * comparison.best_dem.rmse_m:.2f} cm RMSE over the laser-swept cells)")
     figures = [Figure(p, _CAPTIONS[k]) for k, p in comparison.paths.items() if k in _CAPTIONS]

@@ -220,14 +220,16 @@ def _pairs_at_distance(s_m: np.ndarray, delta_m: float, tolerance_m: float) -> n
     return np.array(pairs, dtype=int).reshape(-1, 2)
 
 
-def relative_pose_errors(estimate: Trajectory, truth: Trajectory, delta_m: float = RPE_DELTA_M, relative_tolerance: float = 0.1) -> RelativePoseErrors:
+def relative_pose_errors(estimate: Trajectory, truth: Trajectory, delta_m: float = RPE_DELTA_M, relative_tolerance: float = 0.01) -> RelativePoseErrors:
     """RPE of ``estimate`` over ``delta_m`` of distance travelled along ``truth`` (see :class:`RelativePoseErrors`).
 
     Distances are measured along the truth's positions at the estimate's times (straight between
     them). Every estimate pose starts a pair, ending at the later pose whose distance from it is
-    nearest ``delta_m``, if within ``relative_tolerance * delta_m``: evo's ``evo_rpe --delta 10
-    --delta_unit m --all_pairs --pairs_from_reference``. A run shorter than that gives no pair and
-    a ``reason``, not an error. Raises as :func:`trajectory_errors`, and :class:`DemGraphError`
+    nearest ``delta_m``, if within ``relative_tolerance * delta_m``: evo's ``RPE`` with ``delta=10``,
+    ``delta_unit=meters``, ``all_pairs=True``, ``pairs_from_reference=True`` and ``rel_delta_tol``
+    = ``relative_tolerance``. The default (1 %, 10 cm over 10 m) is tighter than evo's (10 %), so that
+    the pairs near the end of a run, or of a run a little shorter than ``delta_m``, are not shorter
+    than ``delta_m`` by up to a metre. A run shorter than that gives no pair and a ``reason``, not an error. Raises as :func:`trajectory_errors`, and :class:`DemGraphError`
     for a ``delta_m`` that is not positive.
     """
     if not (math.isfinite(delta_m) and delta_m > 0.0):
