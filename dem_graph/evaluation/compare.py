@@ -26,6 +26,7 @@ from dem_graph.datasets.base import Sequence
 from dem_graph.dem.layers import Dem
 from dem_graph.errors import DatasetError, DemGraphError, one_line
 from dem_graph.evaluation.dem_metrics import LocalErrorSeries
+from dem_graph.evaluation.evaluate import open_sequence
 from dem_graph.evaluation.headline import COLUMNS, format_value, headline
 from dem_graph.evaluation.report import Figure, ReportPage
 from dem_graph.evaluation.run_output import write_json
@@ -154,21 +155,23 @@ def _warm_up(sequence: Sequence, config: RunConfig, name: str, frames: int) -> N
 
 
 def compare(
-    sequence: Sequence,
+    sequence: Sequence | str | Path,
     out_dir: str | Path,
     estimators: str | tuple[str, ...] = ESTIMATORS,
     config: RunConfig | None = None,
     dataset: str | Path | None = None,
     warm_up_frames: int = 3,
 ) -> Comparison:
-    """Run each of ``estimators`` on ``sequence`` with ``config`` (its ``estimator`` field is set per
-    run), write every run folder, ``summary.json``, the figures and the report into ``out_dir``.
-    ``dataset`` names the data in the outputs (default: the sequence's folder, else its name).
+    """Run each of ``estimators`` on ``sequence`` (a dataset, or its folder) with ``config`` (its
+    ``estimator`` field is set per run), write every run folder, ``summary.json``, the figures and
+    the report into ``out_dir``. ``dataset`` names the data in the outputs (default: the sequence's
+    folder, else its name).
 
     Before the runs, the first estimator runs untimed on ``warm_up_frames`` frames (0: not at all),
     so that what the process loads once (compiled kernels, caches) does not count in the first
     run's time per frame only."""
     names = parse_estimators(estimators)
+    sequence = open_sequence(sequence)
     config = config or RunConfig()
     out_dir = Path(out_dir)
     try:

@@ -111,9 +111,19 @@ def _trajectory_accuracy(path: Path, truth: GroundTruth) -> dict:
         raise DatasetError(path, f"cannot be compared with the ground truth: {exc}") from None
 
 
-def evaluate_run(run_dir: str | Path, sequence: Sequence, with_dem: bool = True) -> RunEvaluation:
-    """The metrics of the run folder ``run_dir`` against the ground truth of ``sequence`` (the dataset
-    the run was made from: its laser scans make the DEM again). See the module for what is measured.
+def open_sequence(sequence: Sequence | str | Path) -> Sequence:
+    """``sequence`` itself, or the dataset folder at that path."""
+    if isinstance(sequence, (str, Path)):
+        from dem_graph.datasets.folder import FolderSequence
+
+        return FolderSequence(sequence)
+    return sequence
+
+
+def evaluate_run(run_dir: str | Path, sequence: Sequence | str | Path, with_dem: bool = True) -> RunEvaluation:
+    """The metrics of the run folder ``run_dir`` against the ground truth of ``sequence`` (the dataset,
+    or its folder, the run was made from: its laser scans make the DEM again). See the module for
+    what is measured.
 
     Raises :class:`DatasetError` naming the file for a missing run folder, a missing or malformed
     ``trajectory.tum``, a dataset without ground truth, or a run whose times lie outside the truth's.
@@ -124,6 +134,7 @@ def evaluate_run(run_dir: str | Path, sequence: Sequence, with_dem: bool = True)
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise DatasetError(run_dir, "run folder not found" if not run_dir.exists() else "not a folder")
+    sequence = open_sequence(sequence)
     truth = require_ground_truth(sequence)
     own = read_run_metrics(run_dir)
     metrics = {k: own[k] for k in _CARRIED if k in own}
@@ -142,4 +153,4 @@ def evaluate_run(run_dir: str | Path, sequence: Sequence, with_dem: bool = True)
     return RunEvaluation(run_dir, dataset, metrics, dem)
 
 
-__all__ = ["EVALUATION_JSON", "RunEvaluation", "evaluate_run", "read_run_metrics", "require_ground_truth"]
+__all__ = ["EVALUATION_JSON", "RunEvaluation", "evaluate_run", "open_sequence", "read_run_metrics", "require_ground_truth"]
