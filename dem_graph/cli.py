@@ -137,13 +137,12 @@ def dem(run_dir, dataset, at_s, resolution_m, out_dir) -> None:
 
     from dem_graph.dem.pipeline import run_folder_dem
     from dem_graph.errors import DatasetError
-    from dem_graph.run import RunConfig, load_run_config
+    from dem_graph.run import run_folder_config
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise DatasetError(run_dir, "run folder not found")
-    config_path = run_dir / "config.yaml"
-    config = load_run_config(config_path) if config_path.is_file() else RunConfig()
+    config = run_folder_config(run_dir)
     if dataset is None:
         metrics_path = run_dir / "metrics.json"
         try:
@@ -164,6 +163,47 @@ def dem(run_dir, dataset, at_s, resolution_m, out_dir) -> None:
         e, c = m["height_error_laser_cells"], m["corridor"]
         click.echo(f"height RMSE {100 * e['rmse_m']:.1f} cm over the laser-swept cells; corridor {100 * c['coverage']:.0f} % covered")
     click.echo(f"written: {', '.join(str(p) for p in paths.values())}")
+
+
+@main.command()
+@click.argument("run_dir", metavar="RUN", type=click.Path(path_type=Path))
+@click.option("--truth", "dataset", required=True, type=click.Path(path_type=Path), help="Dataset folder with ground truth (the one the run was made from).")
+@click.option("--out", "out_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="JSON file to write [default: RUN/evaluation.json].")
+@_friendly_errors
+def evaluate(run_dir, dataset, out_path) -> None:
+    """The metrics of a run folder against the ground truth: ATE (anchored, aligned), drift, RPE over
+    10 m, the DEM's height errors and coverage, the Fig. 8 local error; time and points per frame."""
+    from dem_graph.evaluation.evaluate import EVALUATION_JSON, evaluate_run
+
+    result = evaluate_run(run_dir, _open_dataset(dataset))
+    path = result.write_json(out_path or Path(run_dir) / EVALUATION_JSON)
+    click.echo(result.table())
+    click.echo(f"written: {path}")
+
+
+@main.command()
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Folder for the run folders, summary.json and the report.")
+@click.option("--estimators", default="gm,ptpm,isam2,isam2-batch", show_default=True, help="Comma-separated estimators to run.")
+@click.option("--max-frames", type=int, default=None, help="Stop each run after this many camera frames.")
+@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="YAML run configuration shared by every run (its estimator is ignored).")
+@_friendly_errors
+def compare(dataset, out_dir, estimators, max_frames, config_path) -> None:
+    """Run the estimators on the same data and settings; print one table, write each run into
+    OUT/<estimator>/, OUT/summary.json, OUT/report.md and a self-contained OUT/report.html."""
+    from dem_graph.evaluation.compare import compare as run_comparison
+    from dem_graph.evaluation.compare import parse_estimators
+    from dem_graph.run import load_run_config
+
+    names = parse_estimators(estimators)
+    config = load_run_config(config_path, max_frames=max_frames)
+    result = run_comparison(_open_dataset(dataset), out_dir, names, config, dataset=Path(dataset).resolve())
+    click.echo(result.table())
+    click.echo(f"report: {result.paths['report_html']} (and report.md); summary: {result.paths['summary']}")
+    failed = [r for r in result.runs if r.status == "failed"]
+    if failed:
+        click.echo(f"dem-graph: error: {len(failed)} of {len(result.runs)} runs failed ({'; '.join(f'{r.estimator}: {r.error}' for r in failed)})", err=True)
+        sys.exit(2)
 
 
 @main.command()

@@ -29,7 +29,7 @@ from dem_graph.estimators.ekf import EkfConfig, EkfOptions, EkfSlam
 from dem_graph.estimators.isam2 import Isam2Config, Isam2Options, Isam2Slam
 from dem_graph.estimators.settings import SharedSettings
 from dem_graph.evaluation.run_output import frame_timing_summary, write_run_outputs
-from dem_graph.evaluation.trajectory_metrics import nees_bounds, pose_nees, trajectory_metrics
+from dem_graph.evaluation.trajectory_metrics import accuracy_summary, nees_bounds, pose_nees
 from dem_graph.progress import progress
 
 log = logging.getLogger(__name__)
@@ -140,9 +140,9 @@ def compute_metrics(sequence: Sequence, run: RunResult) -> dict:
     gt = sequence.ground_truth
     if gt is not None and len(res.frames) > 1:
         est = res.trajectory()
-        metrics["trajectory"] = trajectory_metrics(est, gt.trajectory).as_dict()
+        metrics["trajectory"] = accuracy_summary(est, gt.trajectory)
         for name, extra in res.extra_trajectories().items():
-            metrics[name] = trajectory_metrics(extra, gt.trajectory).as_dict()
+            metrics[name] = accuracy_summary(extra, gt.trajectory)
         nees = pose_nees(est.poses_se3, gt.trajectory.at(est.t_s), res.pose_covariances())
         lo, hi = nees_bounds(6, 0.95)
         later = nees[1:]
@@ -193,6 +193,12 @@ def load_run_config(
     return config
 
 
+def run_folder_config(run_dir: str | Path) -> RunConfig:
+    """The configuration a run folder was made with (its ``config.yaml``), the defaults if it has none."""
+    path = Path(run_dir) / "config.yaml"
+    return load_run_config(path) if path.is_file() else RunConfig()
+
+
 def summary_lines(run: RunResult) -> list[str]:
     m = run.metrics
     lines = [f"{m.get('estimator')}: {m.get('frames', 0)} frames in {m.get('elapsed_s', 0.0):.1f} s"]
@@ -202,7 +208,12 @@ def summary_lines(run: RunResult) -> list[str]:
         lines.append(f"time per frame: median {t['median_ms']:.1f} ms, p95 {t['p95_ms']:.1f} ms; live points median {p['live_median']:.0f}, tracked {p['tracked_median']:.0f}")
     if "trajectory" in m:
         tr = m["trajectory"]
-        lines.append(f"ATE RMSE {tr['ate_rmse_m']:.3f} m, final error {tr['final_error_m']:.3f} m over {tr['distance_m']:.1f} m: drift {tr['drift_percent']:.2f} %")
+        lines.append(f"ATE RMSE {tr['ate_rmse_m']:.3f} m ({tr['ate_aligned_rmse_m']:.3f} m aligned), final error {tr['final_error_m']:.3f} m over {tr['distance_m']:.1f} m: drift {tr['drift_percent']:.2f} %")
+        rpe = tr["rpe"]
+        if rpe["pairs"]:
+            lines.append(f"RPE over {rpe['delta_m']:g} m: {rpe['translation_rmse_m']:.3f} m, {rpe['rotation_rmse_deg']:.2f} deg (RMSE of {rpe['pairs']} pairs)")
+        else:
+            lines.append(f"RPE over {rpe['delta_m']:g} m: none ({rpe['reason']})")
     d = m.get("dem")
     if d and "error" not in d:
         line = f"DEM: {d['covered_cells']} cells of {d['resolution_m']:g} m from {d['measurements']} measurements, rebuilt in {d['rebuild_s']:.2f} s"

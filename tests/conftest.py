@@ -16,3 +16,13 @@ set_progress_enabled(False)
 def smoke_log() -> InMemorySequence:
     """The `smoke` scenario (4 m, 320x240, odometry), every event in memory."""
     return InMemorySequence.record(SimulatedSequence.from_config(scenario("smoke", seed=3)))
+
+
+@pytest.fixture(scope="session")
+def tiny_folder(tmp_path_factory):
+    """The `smoke` scenario cut to 0.5 m (8 camera frames), written as a dataset folder with ground truth."""
+    from dem_graph.sim.pipeline import simulate
+
+    out = tmp_path_factory.mktemp("tiny") / "smoke"
+    simulate(scenario("smoke", seed=5, length_m=0.5), out, preview=False)
+    return out

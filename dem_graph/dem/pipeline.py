@@ -111,17 +111,20 @@ def make_local_dem(returns: GroundReturns, poses: PoseTrack, t_s: float, x_range
     return RunDem(dem, returns.until(t_s), poses, {"t_s": t_s, "covered_cells": int(dem.covered.sum()), "frame": "local"})
 
 
-def run_folder_dem(run_dir: str | Path, sequence, at_s: float | None = None, config: DemConfig | None = None, focus: FocusConfig | None = None) -> RunDem:
+def run_folder_dem(
+    run_dir: str | Path, sequence, at_s: float | None = None, config: DemConfig | None = None, focus: FocusConfig | None = None, local_errors: bool = False
+) -> RunDem:
     """The DEM of a run folder made again from its saved poses and map points and the dataset's scans:
     the global map, or with ``at_s`` the local map at that time over the focus area the guidance
-    needs at the vehicle's speed then."""
+    needs at the vehicle's speed then. ``local_errors``: the global map's metrics also get the
+    Fig. 8 measure, as a run's do (it needs the truth's elevation)."""
     config = config or DemConfig()
     focus = focus or FocusConfig()
     poses = load_run_poses(run_dir)
     points = load_run_points(run_dir) if config.map_points else None
     returns = ground_returns(sequence, poses, points)
     if at_s is None:
-        return make_run_dem(returns, poses, sequence.ground_truth, config, corridor_half_width_m=focus.corridor_width_m / 2.0, local_errors=False)
+        return make_run_dem(returns, poses, sequence.ground_truth, config, corridor_half_width_m=focus.corridor_width_m / 2.0, local_errors=local_errors)
     _require_time(poses, at_s)
     area = FocusArea.for_speed(focus, sequence.rig, speed_at(poses, at_s))
     return make_local_dem(returns, poses, at_s, (area.x_near_m, area.x_far_m), area.half_width_m, config)

@@ -52,6 +52,22 @@ def _write_text(path: Path, text: str) -> None:
         raise DatasetError(path, f"cannot write ({exc.strerror or exc})") from None
 
 
+def json_text(data: dict, what: str = "data") -> str:
+    """``data`` as the run folder writes JSON: pretty, sorted keys, numpy values as plain numbers and
+    lists, NaN and infinities as ``null``. Raises :class:`DemGraphError` naming ``what`` if it cannot."""
+    try:
+        return json.dumps(_plain(data, nan_to_none=True), indent=2, sort_keys=True, allow_nan=False) + "\n"
+    except (TypeError, ValueError) as exc:
+        raise DemGraphError(f"{what} cannot be written as JSON: {exc}") from None
+
+
+def write_json(path: str | Path, data: dict, what: str = "data") -> Path:
+    """Write ``data`` to ``path`` as :func:`json_text`; :class:`DatasetError` naming the file if it cannot."""
+    path = Path(path)
+    _write_text(path, json_text(data, what))
+    return path
+
+
 def write_run_outputs(
     out_dir: str | Path,
     trajectory: Trajectory,
@@ -76,10 +92,7 @@ def write_run_outputs(
         if not isinstance(name, str) or not name or name in _RESERVED or name.startswith(".") or any(c in name for c in "/\\"):
             raise DemGraphError(f"extra trajectory name {name!r} is not a plain file stem other than {', '.join(_RESERVED)}")
 
-    try:
-        metrics_text = json.dumps(_plain(metrics, nan_to_none=True), indent=2, sort_keys=True, allow_nan=False) + "\n"
-    except (TypeError, ValueError) as exc:
-        raise DemGraphError(f"metrics cannot be written as JSON: {exc}") from None
+    metrics_text = json_text(metrics, "metrics")
     try:
         config_text = yaml.safe_dump(_plain(config, nan_to_none=False), sort_keys=False)
     except yaml.YAMLError as exc:

@@ -3,7 +3,9 @@
 Every estimator starts at the dataset's initial pose ``T_world_body_initial``, so its trajectory
 is expressed in the ground truth's world frame and is compared **as is**, without any alignment:
 the "ATE anchored at the initial pose". :func:`ate_aligned_rmse_m` (the usual ATE after a best
-rigid alignment, as evo's ``--align``) is given alongside for comparison with other papers.
+rigid alignment, as evo's ``--align``) is given alongside for comparison with other papers, and
+:func:`relative_pose_errors` gives the RPE over a travelled distance (10 m by default), which
+measures local drift whatever happened before. :func:`accuracy_summary` gathers them all.
 
 The estimate is compared at its own sample times; the ground truth is interpolated there with
 :meth:`Trajectory.at` (slerp for rotation, linear for translation).
@@ -153,6 +155,121 @@ def ate_aligned_rmse_m(estimate: Trajectory, truth: Trajectory) -> float:
     R, t, _ = umeyama_alignment(est, true, with_scale=False)
     residual = est @ R.T + t - true
     return float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
+
+
+RPE_DELTA_M = 10.0  # the distance the RPE is measured over, metres
+
+
+@dataclass(frozen=True)
+class RelativePoseErrors:
+    """Relative-pose errors (RPE) between estimate poses ``delta_m`` apart along the ground truth.
+
+    For each pair ``(i, j)`` the error is ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``, with ``Q`` the true
+    and ``P`` the estimated ``T_world_body``: the estimate's motion from i to j compared with the
+    true motion, in the body frame at i. ``translation_error_m`` is the norm of E's translation,
+    ``rotation_error_deg`` the angle of E's rotation. ``reason`` says why there is no pair (the run
+    is shorter than ``delta_m``); the summary numbers are then NaN.
+    """
+
+    delta_m: float
+    tolerance_m: float
+    pairs: np.ndarray  # (K, 2) indices into the estimate's poses, i < j
+    translation_error_m: np.ndarray  # (K,)
+    rotation_error_deg: np.ndarray  # (K,)
+    distance_m: float  # distance along the truth over the estimate's span
+    reason: str | None = None
+
+    def as_dict(self) -> dict:
+        """Summary numbers as plain Python values, for JSON (NaN when there is no pair)."""
+        n = len(self.pairs)
+        t = self.translation_error_m
+        r = self.rotation_error_deg
+        nan = math.nan
+        return {
+            "delta_m": float(self.delta_m),
+            "pairs": int(n),
+            "translation_rmse_m": float(np.sqrt(np.mean(t**2))) if n else nan,
+            "translation_mean_m": float(np.mean(t)) if n else nan,
+            "translation_max_m": float(np.max(t)) if n else nan,
+            "translation_rmse_percent": float(100.0 * np.sqrt(np.mean(t**2)) / self.delta_m) if n else nan,
+            "rotation_rmse_deg": float(np.sqrt(np.mean(r**2))) if n else nan,
+            "reason": self.reason,
+        }
+
+
+def _pairs_at_distance(s_m: np.ndarray, delta_m: float, tolerance_m: float) -> np.ndarray:
+    """For every pose i, the later pose j whose distance ``s_j - s_i`` is nearest ``delta_m`` (the
+    earliest such j on a tie), kept when it is within ``tolerance_m`` of it. ``s_m`` never decreases."""
+    pairs = []
+    n = len(s_m)
+    for i in range(n - 1):
+        target = s_m[i] + delta_m
+        above = int(np.searchsorted(s_m, target, side="left"))  # first j with s_j >= target
+        candidates = []
+        if above - 1 > i:
+            # the last distance below the target; its earliest index, as the earliest j wins a tie
+            candidates.append(max(int(np.searchsorted(s_m, s_m[above - 1], side="left")), i + 1))
+        if above < n:
+            candidates.append(max(above, i + 1))
+        if not candidates:
+            continue
+        gaps = [abs((s_m[j] - s_m[i]) - delta_m) for j in candidates]
+        k = int(np.argmin(gaps))
+        if gaps[k] <= tolerance_m:
+            pairs.append((i, candidates[k]))
+    return np.array(pairs, dtype=int).reshape(-1, 2)
+
+
+def relative_pose_errors(estimate: Trajectory, truth: Trajectory, delta_m: float = RPE_DELTA_M, relative_tolerance: float = 0.01) -> RelativePoseErrors:
+    """RPE of ``estimate`` over ``delta_m`` of distance travelled along ``truth`` (see :class:`RelativePoseErrors`).
+
+    Distances are measured along the truth's positions at the estimate's times (straight between
+    them). Every estimate pose starts a pair, ending at the later pose whose distance from it is
+    nearest ``delta_m``, if within ``relative_tolerance * delta_m``: evo's ``RPE`` with ``delta=10``,
+    ``delta_unit=meters``, ``all_pairs=True``, ``pairs_from_reference=True`` and ``rel_delta_tol``
+    = ``relative_tolerance``. The default (1 %, 10 cm over 10 m) is tighter than evo's (10 %), so that
+    the pairs near the end of a run, or of a run a little shorter than ``delta_m``, are not shorter
+    than ``delta_m`` by up to a metre. A run shorter than that gives no pair and a ``reason``, not an error. Raises as :func:`trajectory_errors`, and :class:`DemGraphError`
+    for a ``delta_m`` that is not positive.
+    """
+    if not (math.isfinite(delta_m) and delta_m > 0.0):
+        raise DemGraphError(f"the RPE distance must be a positive number of metres, got {delta_m!r}")
+    trajectory_errors(estimate, truth)  # the same checks of the time spans
+    Q = truth.at(estimate.t_s).reshape(-1, 4, 4)
+    # distance along the truth's poses at the estimate's times, as evo measures it
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(Q[:, :3, 3], axis=0), axis=1))])
+    tolerance = relative_tolerance * delta_m
+    distance = float(s[-1])
+    pairs = _pairs_at_distance(s, delta_m, tolerance)
+    reason = None
+    if len(pairs) == 0:
+        if distance < delta_m - tolerance:
+            reason = f"the run covers {distance:.2f} m along the ground truth, less than the RPE's {delta_m:g} m"
+        else:
+            reason = f"no two poses lie {delta_m:g} +- {tolerance:g} m apart along the ground truth"
+    P = estimate.poses_se3
+    i, j = pairs[:, 0], pairs[:, 1]
+    E = invert(invert(Q[i]) @ Q[j]) @ (invert(P[i]) @ P[j])
+    angles = Rotation.from_matrix(E[:, :3, :3]).magnitude() if len(pairs) else np.zeros(0)
+    return RelativePoseErrors(
+        delta_m=float(delta_m),
+        tolerance_m=float(tolerance),
+        pairs=pairs,
+        translation_error_m=np.linalg.norm(E[:, :3, 3], axis=1),
+        rotation_error_deg=np.degrees(np.asarray(angles, dtype=float)),
+        distance_m=distance,
+        reason=reason,
+    )
+
+
+def accuracy_summary(estimate: Trajectory, truth: Trajectory, rpe_delta_m: float = RPE_DELTA_M) -> dict:
+    """Every trajectory number of a run, as plain values for ``metrics.json``: the anchored metrics
+    of :func:`trajectory_metrics` (ATE, drift in % of distance, ...), ``ate_aligned_rmse_m``, and
+    the RPE over ``rpe_delta_m`` under ``"rpe"``."""
+    out = trajectory_metrics(estimate, truth).as_dict()
+    out["ate_aligned_rmse_m"] = ate_aligned_rmse_m(estimate, truth)
+    out["rpe"] = relative_pose_errors(estimate, truth, rpe_delta_m).as_dict()
+    return out
 
 
 def pose_nees(estimate_T, truth_T, covariances) -> np.ndarray:

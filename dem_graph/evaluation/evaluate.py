@@ -1,0 +1,156 @@
+"""The accuracy of one run folder against a dataset's ground truth (``dem-graph evaluate RUN --truth DATASET``).
+
+From the files of the run folder (see :mod:`dem_graph.evaluation.run_output`):
+
+- ``trajectory.tum`` (and ``trajectory_*.tum``, e.g. isam2's smoothed poses): anchored and aligned
+  ATE, drift in % of distance and the RPE over 10 m (:func:`accuracy_summary`);
+- ``poses.npz``, ``points.ply`` and the dataset's scans: the DEM made again, its height errors over
+  the covered cells and over the laser-swept ones (RMSE, mean, std, 95th percentile of the absolute
+  error), the corridor's coverage and the Fig. 8 local error (:func:`run_folder_dem`);
+- ``metrics.json``, when there is one: the run's own measurements that need no truth (estimator,
+  frames, time and points per frame) are carried over as they are.
+
+The result has the layout of a run's ``metrics.json``, so :mod:`dem_graph.evaluation.headline`
+reads both.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from dem_graph.datasets.base import GroundTruth, Sequence
+from dem_graph.dem.build import POSES_NPZ
+from dem_graph.dem.pipeline import RunDem, run_folder_dem
+from dem_graph.errors import DatasetError, DemGraphError
+from dem_graph.evaluation.headline import COLUMNS, format_value, headline
+from dem_graph.evaluation.run_output import write_json
+from dem_graph.evaluation.trajectory_metrics import accuracy_summary
+from dem_graph.io.tum import read_tum
+
+log = logging.getLogger(__name__)
+
+TRAJECTORY_TUM = "trajectory.tum"
+METRICS_JSON = "metrics.json"
+EVALUATION_JSON = "evaluation.json"
+# what a run measured that needs no truth: carried over from its metrics.json
+_CARRIED = ("estimator", "frames", "elapsed_s", "error", "time_per_frame", "points_per_frame", "map_points")
+
+
+def require_ground_truth(sequence: Sequence) -> GroundTruth:
+    """The dataset's ground truth; :class:`DatasetError` naming the missing file when it has none."""
+    if sequence.ground_truth is not None:
+        return sequence.ground_truth
+    root = getattr(sequence, "path", None)
+    where = Path(root) / "ground_truth" / "trajectory.tum" if root is not None else sequence.name
+    raise DatasetError(where, "not found: the dataset has no ground truth to evaluate against")
+
+
+def read_run_metrics(run_dir: str | Path) -> dict:
+    """A run folder's ``metrics.json``; an empty dict when it is absent, :class:`DatasetError` when unreadable."""
+    path = Path(run_dir) / METRICS_JSON
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise DatasetError(path, f"not a readable JSON file ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise DatasetError(path, "must hold a mapping")
+    return data
+
+
+@dataclass
+class RunEvaluation:
+    """The metrics of one run folder against a truth, laid out as a run's ``metrics.json``."""
+
+    run_dir: Path
+    dataset: str
+    metrics: dict = field(default_factory=dict)
+    dem: RunDem | None = None  # the DEM made again, for figures (None without poses.npz)
+
+    @property
+    def headline(self) -> dict[str, float]:
+        return headline(self.metrics)
+
+    def table(self) -> str:
+        """A short table: one line per number (the headline columns, then the DEM's details)."""
+        values = self.headline
+        rows = [[c.label, format_value(c, values[c.key])] for c in COLUMNS]
+        rpe = self.metrics.get("trajectory", {}).get("rpe", {})
+        if rpe.get("reason"):
+            rows.append(["RPE 10 m", rpe["reason"]])
+        dem = self.metrics.get("dem", {})
+        for key, label in (("height_error", "all covered cells"), ("height_error_laser_cells", "laser-swept cells")):
+            e = dem.get(key)
+            if e and e.get("cells"):
+                rows.append([f"DEM error, {label} (cm)", f"RMSE {100 * e['rmse_m']:.2f}, mean {100 * e['mean_m']:.2f}, std {100 * e['std_m']:.2f}, p95 |e| {100 * e['p95_abs_m']:.2f} ({e['cells']} cells)"])
+        c = dem.get("corridor")
+        if c and c.get("corridor_cells"):
+            rows.append(["corridor coverage (%)", f"{100 * c['coverage']:.1f} of {c['corridor_cells']} cells within {c['half_width_m']:g} m of the path"])
+        if "error" in dem:
+            rows.append(["DEM", f"not made ({dem['error']})"])
+        title = f"{self.run_dir} ({self.metrics.get('estimator', 'unknown estimator')}, {self.metrics.get('frames', '?')} frames) against {self.dataset}"
+        width = max(len(label) for label, _ in rows)
+        return "\n".join([title, *(f"  {label.ljust(width)}  {value}" for label, value in rows)])
+
+    def as_dict(self) -> dict:
+        return {"run_dir": str(self.run_dir), "dataset": self.dataset, "headline": self.headline, "metrics": self.metrics}
+
+    def write_json(self, path: str | Path) -> Path:
+        return write_json(path, self.as_dict(), "the evaluation")
+
+
+def _trajectory_accuracy(path: Path, truth: GroundTruth) -> dict:
+    estimate = read_tum(path)
+    try:
+        return accuracy_summary(estimate, truth.trajectory)
+    except DemGraphError as exc:
+        raise DatasetError(path, f"cannot be compared with the ground truth: {exc}") from None
+
+
+def open_sequence(sequence: Sequence | str | Path) -> Sequence:
+    """``sequence`` itself, or the dataset folder at that path."""
+    if isinstance(sequence, (str, Path)):
+        from dem_graph.datasets.folder import FolderSequence
+
+        return FolderSequence(sequence)
+    return sequence
+
+
+def evaluate_run(run_dir: str | Path, sequence: Sequence | str | Path, with_dem: bool = True) -> RunEvaluation:
+    """The metrics of the run folder ``run_dir`` against the ground truth of ``sequence`` (the dataset,
+    or its folder, the run was made from: its laser scans make the DEM again). See the module for
+    what is measured.
+
+    Raises :class:`DatasetError` naming the file for a missing run folder, a missing or malformed
+    ``trajectory.tum``, a dataset without ground truth, or a run whose times lie outside the truth's.
+    A run folder without ``poses.npz`` gets no DEM metrics (``metrics["dem"]["error"]`` says why).
+    """
+    from dem_graph.run import run_folder_config
+
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise DatasetError(run_dir, "run folder not found" if not run_dir.exists() else "not a folder")
+    sequence = open_sequence(sequence)
+    truth = require_ground_truth(sequence)
+    own = read_run_metrics(run_dir)
+    metrics = {k: own[k] for k in _CARRIED if k in own}
+    metrics["trajectory"] = _trajectory_accuracy(run_dir / TRAJECTORY_TUM, truth)
+    for extra in sorted(run_dir.glob("trajectory_*.tum")):
+        metrics[extra.stem] = _trajectory_accuracy(extra, truth)
+    dem = None
+    if with_dem:
+        if (run_dir / POSES_NPZ).is_file():
+            config = run_folder_config(run_dir)
+            dem = run_folder_dem(run_dir, sequence, None, config.dem, config.frontend.focus, local_errors=True)
+            metrics["dem"] = dem.metrics
+        else:
+            metrics["dem"] = {"error": f"no {POSES_NPZ} in the run folder to make the DEM from"}
+    dataset = str(getattr(sequence, "path", sequence.name))
+    return RunEvaluation(run_dir, dataset, metrics, dem)
+
+
+__all__ = ["EVALUATION_JSON", "RunEvaluation", "evaluate_run", "open_sequence", "read_run_metrics", "require_ground_truth"]
