@@ -200,6 +200,10 @@ def compare(dataset, out_dir, estimators, max_frames, config_path) -> None:
     result = run_comparison(_open_dataset(dataset), out_dir, names, config, dataset=Path(dataset).resolve())
     click.echo(result.table())
     click.echo(f"report: {result.paths['report_html']} (and report.md); summary: {result.paths['summary']}")
+    click.echo(f"run folders: {', '.join(str(r.run_dir) for r in result.runs)}")
+    figures = [p for k, p in result.paths.items() if k.startswith("figure_")]
+    if figures:
+        click.echo(f"figures: {figures[0].parent}/ ({', '.join(p.name for p in figures)})")
     failed = [r for r in result.runs if r.status == "failed"]
     if failed:
         click.echo(f"dem-graph: error: {len(failed)} of {len(result.runs)} runs failed ({'; '.join(f'{r.estimator}: {r.error}' for r in failed)})", err=True)
