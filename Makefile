@@ -1,5 +1,6 @@
 # Two commands do everything on a fresh Debian/Ubuntu machine with Python >= 3.10:
-#   make demo   set up, simulate the default scenario (dataset + picture), run the EKF baselines and iSAM2 on it
+#   make demo   set up, simulate the default scenario (dataset + picture), compare GM, PTPM, iSAM2 and iSAM2-batch on it
+#               (one table, run folders and a report under out/demo/compare/)
 #   make test   set up, then run the test suite
 PYTHON ?= python3
 VENV ?= .venv
@@ -10,10 +11,7 @@ OUT ?= out
 
 demo: setup
 	$(BIN)/dem-graph simulate --scenario demo --out $(OUT)/demo/dataset --overwrite
-	$(BIN)/dem-graph run $(OUT)/demo/dataset --estimator gm --out $(OUT)/demo/run_gm
-	$(BIN)/dem-graph run $(OUT)/demo/dataset --estimator ptpm --out $(OUT)/demo/run_ptpm
-	$(BIN)/dem-graph run $(OUT)/demo/dataset --estimator isam2 --out $(OUT)/demo/run_isam2
-	$(BIN)/dem-graph run $(OUT)/demo/dataset --estimator isam2 --graph-process --out $(OUT)/demo/run_isam2_process
+	$(BIN)/dem-graph compare $(OUT)/demo/dataset --estimators gm,ptpm,isam2,isam2-batch --out $(OUT)/demo/compare
 
 test: setup
 	$(BIN)/python -m pytest -q

@@ -200,6 +200,10 @@ def compare(dataset, out_dir, estimators, max_frames, config_path) -> None:
     result = run_comparison(_open_dataset(dataset), out_dir, names, config, dataset=Path(dataset).resolve())
     click.echo(result.table())
     click.echo(f"report: {result.paths['report_html']} (and report.md); summary: {result.paths['summary']}")
+    click.echo(f"run folders: {', '.join(str(r.run_dir) for r in result.runs)}")
+    figures = [p for k, p in result.paths.items() if k.startswith("figure_")]
+    if figures:
+        click.echo(f"figures: {figures[0].parent}/ ({', '.join(p.name for p in figures)})")
     failed = [r for r in result.runs if r.status == "failed"]
     if failed:
         click.echo(f"dem-graph: error: {len(failed)} of {len(result.runs)} runs failed ({'; '.join(f'{r.estimator}: {r.error}' for r in failed)})", err=True)
@@ -211,17 +215,31 @@ def compare(dataset, out_dir, estimators, max_frames, config_path) -> None:
 @click.option("--points", default="50,100,130,150,200,300", show_default=True, help="Comma-separated caps on live points.")
 @click.option("--scenario", "scenario_name", default="demo", show_default=True, help="Simulated scenario to replay.")
 @click.option("--frames", type=int, default=150, show_default=True, help="Camera frames per run (1550 or more: also the cost at frame 1500 over frame 150).")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also draw the paper's Fig. 12 (time per frame against live points) into this PNG.")
 @_friendly_errors
-def bench(estimators, points, scenario_name, frames) -> None:
+def bench(estimators, points, scenario_name, frames, plot_path) -> None:
     """Benchmark the estimators: time per frame against the number of points, tracking included."""
-    from dem_graph.evaluation.bench_estimators import bench_estimators
+    from dem_graph.evaluation.bench_estimators import BENCH_ESTIMATORS, bench_estimators
 
     try:
-        counts = tuple(int(x) for x in points.split(","))
+        counts = tuple(int(x) for x in points.split(",") if x.strip())
     except ValueError:
         raise click.BadParameter(f"not a list of integers: {points}", param_hint="--points") from None
-    result = bench_estimators(tuple(x.strip() for x in estimators.split(",")), counts, scenario_name, frames)
+    if not counts or min(counts) < 1:
+        raise click.BadParameter(f"give caps of 1 point or more: {points}", param_hint="--points")
+    names = tuple(x.strip() for x in estimators.split(",") if x.strip())
+    unknown = [n for n in names if n not in BENCH_ESTIMATORS]
+    if unknown or not names:
+        raise click.BadParameter(f"unknown estimator {', '.join(unknown) or '(none given)'}: choose from {', '.join(BENCH_ESTIMATORS)}", param_hint="--estimators")
+    if plot_path is not None and plot_path.suffix.lower() != ".png":
+        raise click.BadParameter(f"the plot is a PNG: {plot_path}", param_hint="--plot")
+    result = bench_estimators(names, counts, scenario_name, frames)
     click.echo(result.table())
+    if plot_path is not None:
+        from dem_graph.viz.bench_figure import time_per_frame_figure
+
+        figure = time_per_frame_figure(plot_path, result.rows, f"'{result.scenario}' {result.image_size}, {result.frames} frames, on {result.machine}")
+        click.echo(f"plot: {figure.path}")
 
 
 @main.command("bench-dem")

@@ -69,8 +69,13 @@ class EstimatorBenchResult:
         return format_table(headers, rows, title=f"estimator benchmark: '{self.scenario}' {self.image_size}, {self.frames} frames, on {self.machine}")
 
 
-def _config_for(estimator: str, max_points: int, rig) -> RunConfig:
-    """``isam2-process``: isam2 with its graph in a second process."""
+BENCH_ESTIMATORS = ("gm", "ptpm", "isam2", "isam2-batch", "isam2-process")
+
+
+def config_for_points(estimator: str, max_points: int, rig) -> RunConfig:
+    """The run configuration for ``estimator`` with a budget of ``max_points`` live points: 70 % of
+    them at most from the laser, and about as many focus cells as points, so that the cap is what
+    limits. ``isam2-process``: isam2 with its graph in a second process."""
     config = RunConfig(estimator="isam2" if estimator == "isam2-process" else estimator)
     config.isam2.graph_process = estimator == "isam2-process"
     fe = config.frontend
@@ -95,7 +100,7 @@ def bench_estimators(estimators=("gm", "ptpm"), point_counts=(50, 100, 130, 150,
     rows = []
     for name in estimators:
         for n in progress(point_counts, total=len(point_counts), desc=f"bench {name}"):
-            run = run_estimator(log, _config_for(name, n, sim.rig))
+            run = run_estimator(log, config_for_points(name, n, sim.rig))
             fr = run.estimator.frames[5:]  # skip the start, while the map fills
             total = np.array([f.timing_s["total"] for f in run.estimator.frames])
             ratio = float(np.median(total[1450:1550]) / np.median(total[100:200])) if len(total) >= 1550 else float("nan")

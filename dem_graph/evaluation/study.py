@@ -1,0 +1,164 @@
+"""Accuracy against cost of the estimators over several seeds, speeds and point budgets.
+
+For each seed and speed the scenario is simulated once into a dataset folder
+(``data_dir/<scenario>_seed<S>_<V>mps``); every estimator then runs on it with every point budget
+(the cap on live points, with the focus cells and laser share set as ``dem-graph bench`` sets
+them). A row holds the run's ATE (anchored and aligned), drift and time per frame (median and
+p95, tracking included; for ``isam2-batch`` the online pass). No run folder and no DEM is
+written: only the numbers.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from dem_graph.datasets.folder import FolderSequence
+from dem_graph.errors import DatasetError, DemGraphError, one_line
+from dem_graph.evaluation.bench_estimators import config_for_points
+from dem_graph.evaluation.headline import headline
+from dem_graph.evaluation.timing import format_table
+from dem_graph.progress import progress
+from dem_graph.run import ESTIMATORS, run_estimator
+from dem_graph.sim.pipeline import simulate
+from dem_graph.sim.scenarios import scenario
+
+
+@dataclass(frozen=True)
+class StudyRow:
+    estimator: str
+    seed: int
+    speed_mps: float
+    max_points: int
+    ate_m: float  # anchored at the initial pose
+    ate_aligned_m: float
+    drift_percent: float
+    frame_ms_median: float
+    frame_ms_p95: float
+    live_points: float  # median per frame
+    status: str = "ok"  # or the one-line error of a run that failed or stopped
+
+
+def _mean(values: list[float]) -> float:
+    return float(np.mean(values)) if values else math.nan
+
+
+@dataclass(frozen=True)
+class EstimatorSummary:
+    estimator: str
+    runs: int  # runs with a finite ATE
+    mean_ate_m: float
+    mean_frame_ms: float  # mean over the runs of their median time per frame
+
+
+@dataclass
+class StudyResult:
+    rows: list[StudyRow]
+    scenario: str
+    frames: int | None  # camera frames per run at most (None: all)
+
+    def table(self) -> str:
+        headers = ["estimator", "seed", "speed (m/s)", "cap n", "ATE (m)", "ATE aligned (m)", "drift (%)", "frame ms (median)", "frame ms (p95)", "live", "status"]
+        rows = [
+            [r.estimator, r.seed, f"{r.speed_mps:g}", r.max_points, f"{r.ate_m:.3f}", f"{r.ate_aligned_m:.3f}", f"{r.drift_percent:.2f}",
+             f"{r.frame_ms_median:.1f}", f"{r.frame_ms_p95:.1f}", f"{r.live_points:.0f}", r.status]
+            for r in self.rows
+        ]
+        frames = f", at most {self.frames} frames per run" if self.frames else ""
+        return format_table(headers, rows, title=f"estimator study on '{self.scenario}'{frames}")
+
+    def summary(self) -> list[EstimatorSummary]:
+        """Per estimator (in the order they ran): the mean ATE and mean time per frame of its runs with a finite ATE."""
+        out = []
+        for name in dict.fromkeys(r.estimator for r in self.rows):
+            ok = [r for r in self.rows if r.estimator == name and math.isfinite(r.ate_m)]
+            out.append(EstimatorSummary(name, len(ok), _mean([r.ate_m for r in ok]), _mean([r.frame_ms_median for r in ok])))
+        return out
+
+    def conclusion(self) -> str:
+        """What the rows say, in one paragraph: which estimator had the lowest mean ATE, at what cost,
+        and the fastest one; built from the numbers only."""
+        summary = [s for s in self.summary() if s.runs]
+        if not summary:
+            return "No run gave an ATE: nothing to conclude."
+        best = min(summary, key=lambda s: s.mean_ate_m)
+        fastest = min(summary, key=lambda s: s.mean_frame_ms)
+        seeds = sorted({r.seed for r in self.rows})
+        speeds = sorted({r.speed_mps for r in self.rows})
+        budgets = sorted({r.max_points for r in self.rows})
+        text = (
+            f"Over {len(seeds)} seed(s), speed(s) {', '.join(f'{v:g}' for v in speeds)} m/s and point budget(s) {', '.join(map(str, budgets))} "
+            f"on '{self.scenario}': {best.estimator} had the lowest mean ATE, {best.mean_ate_m:.3f} m over {best.runs} runs, "
+            f"at {best.mean_frame_ms:.1f} ms per frame (mean of the medians). "
+        )
+        if fastest.estimator == best.estimator:
+            text += "It was also the fastest."
+        else:
+            text += f"The fastest was {fastest.estimator} ({fastest.mean_frame_ms:.1f} ms per frame, mean ATE {fastest.mean_ate_m:.3f} m)."
+        others = ", ".join(f"{s.estimator} {s.mean_ate_m:.3f} m at {s.mean_frame_ms:.1f} ms" for s in summary if s is not best)
+        if others:
+            text += f" Others: {others}."
+        failed = sum(r.status != "ok" for r in self.rows)
+        if failed:
+            text += f" {failed} run(s) failed or stopped early."
+        return text
+
+    def write_csv(self, path: str | Path) -> Path:
+        path = Path(path)
+        try:
+            with path.open("w", newline="") as f:
+                writer = csv.writer(f)
+                writer.writerow([f.name for f in fields(StudyRow)])
+                for r in self.rows:
+                    writer.writerow(list(asdict(r).values()))
+        except OSError as exc:
+            raise DatasetError(path, f"cannot write ({exc.strerror or exc})") from None
+        return path
+
+
+def _run_row(sequence, name: str, seed: int, speed_mps: float, max_points: int, max_frames: int | None) -> StudyRow:
+    config = config_for_points(name, max_points, sequence.rig)
+    config.max_frames = max_frames
+    nan = math.nan
+    try:
+        run = run_estimator(sequence, config, with_dem=False)
+    except DemGraphError as exc:
+        return StudyRow(name, seed, speed_mps, max_points, nan, nan, nan, nan, nan, nan, f"failed: {one_line(exc)}")
+    h = headline(run.metrics)
+    status = "ok" if run.error is None else f"stopped: {one_line(run.error)}"
+    return StudyRow(
+        name, seed, speed_mps, max_points, h["ate_anchored_rmse_m"], h["ate_aligned_rmse_m"], h["drift_percent"],
+        h["time_per_frame_median_ms"], h["time_per_frame_p95_ms"], h["points_per_frame"], status,
+    )
+
+
+def estimator_study(
+    data_dir: str | Path,
+    scenario_name: str = "paper",
+    seeds=(1, 2),
+    speeds_mps=(1.5, 2.0, 5.0),
+    point_budgets=(140,),
+    estimators=ESTIMATORS,
+    max_frames: int | None = None,
+    length_m: float | None = None,
+) -> StudyResult:
+    """Every estimator with every point budget on the scenario simulated for every seed and speed
+    (``length_m`` shortens the drive; an existing dataset folder of the same name is replaced)."""
+    rows = []
+    data_dir = Path(data_dir)
+    for seed in seeds:
+        for speed in speeds_mps:
+            folder = data_dir / f"{scenario_name}_seed{seed}_{speed:g}mps"
+            simulate(scenario(scenario_name, seed=seed, speed_mps=speed, length_m=length_m), folder, overwrite=True, preview=False)
+            sequence = FolderSequence(folder)
+            jobs = [(name, n) for name in estimators for n in point_budgets]
+            for name, n in progress(jobs, total=len(jobs), desc=f"seed {seed}, {speed:g} m/s"):
+                rows.append(_run_row(sequence, name, seed, float(speed), int(n), max_frames))
+    return StudyResult(rows, scenario_name, max_frames)
+
+
+__all__ = ["EstimatorSummary", "StudyResult", "StudyRow", "estimator_study"]
