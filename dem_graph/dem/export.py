@@ -21,6 +21,7 @@ from dem_graph.dem.returns import GroundReturns
 from dem_graph.errors import DatasetError
 from dem_graph.io.geotiff import write_elevation_geotiff
 from dem_graph.io.ply import write_points_ply
+from dem_graph.viz.plotting import pyplot, save_figure
 
 _FIRST = ("variance", "count")
 
@@ -52,12 +53,9 @@ def _nice_length(extent_m: float) -> float:
 def write_dem_png(path: str | Path, dem: Dem, trajectory_xy: np.ndarray | None = None, title: str | None = None) -> Path:
     """Top view of the elevation (colour map and bar), a metre scale bar and the trajectory."""
     import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
-    path = Path(path)
+    plt = pyplot()
     g = dem.geometry
     z = np.ma.masked_invalid(dem.elevation)
     extent = (g.x_min_m, g.x_max_m, g.y_min_m, g.y_max_m)
@@ -83,13 +81,10 @@ def write_dem_png(path: str | Path, dem: Dem, trajectory_xy: np.ndarray | None =
         ax.set_aspect("equal")
         covered = dem.covered.sum()
         ax.set_title(title or f"DEM, {g.resolution_m:g} m cells, {covered} covered")
-        fig.tight_layout()
-        fig.savefig(path, dpi=110)
-    except OSError as exc:
-        raise DatasetError(path, f"cannot write ({exc.strerror or exc})") from None
-    finally:
+    except BaseException:
         plt.close(fig)
-    return path
+        raise
+    return save_figure(fig, path, dpi=110)
 
 
 def write_dem_outputs(out_dir: str | Path, dem: Dem, returns: GroundReturns | None = None, trajectory_xy: np.ndarray | None = None) -> dict[str, Path]:

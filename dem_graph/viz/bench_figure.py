@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from dem_graph.evaluation.bench_estimators import BenchRow
-from dem_graph.viz.compare_figures import _pyplot, _save, colour
+from dem_graph.viz.plotting import colour, pyplot, save_figure
 
 FRAME_BUDGET_MS = 40.0  # one camera frame at 25 Hz
 
@@ -50,7 +50,7 @@ def time_series(rows: list[BenchRow]) -> dict[str, TimeSeries]:
 def time_per_frame_figure(path: str | Path, rows: list[BenchRow], title: str = "") -> BenchFigure:
     """Fig. 12 as a PNG at ``path``: median time per frame (line) and up to its 95th percentile (band)
     against the live points per frame, one line per estimator, and the 40 ms (25 Hz) budget."""
-    plt = _pyplot()
+    plt = pyplot()
     series = time_series(rows)
     fig, ax = plt.subplots(figsize=(8.0, 5.0))
     for k, (name, s) in enumerate(series.items()):
@@ -65,7 +65,7 @@ def time_per_frame_figure(path: str | Path, rows: list[BenchRow], title: str = "
     ax.set_title(title or "Time per frame against the number of points (Fig. 12)", fontsize=10)
     ax.grid(True, alpha=0.3)
     ax.legend(loc="upper left", fontsize=8, ncol=2)
-    return BenchFigure(_save(fig, path), fig, series)
+    return BenchFigure(save_figure(fig, path), fig, series)
 
 
 __all__ = ["FRAME_BUDGET_MS", "BenchFigure", "TimeSeries", "time_per_frame_figure", "time_series"]

@@ -13,41 +13,11 @@ from pathlib import Path
 import numpy as np
 
 from dem_graph.dem.layers import Dem
-from dem_graph.errors import DatasetError
 from dem_graph.evaluation.dem_metrics import LocalErrorSeries, truth_at_cells
 from dem_graph.evaluation.trajectory_metrics import trajectory_errors
 from dem_graph.geometry.grid import ElevationGrid
 from dem_graph.geometry.trajectory import Trajectory
-
-_COLOURS = {"gm": "tab:orange", "ptpm": "tab:blue", "isam2": "tab:green", "isam2-batch": "tab:red"}
-_DPI = 100
-
-
-def colour(name: str, index: int = 0) -> str:
-    """The estimator's colour (a fixed one for the known estimators)."""
-    return _COLOURS.get(name, f"C{4 + index % 6}")
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: str | Path) -> Path:
-    plt = _pyplot()
-    path = Path(path)
-    try:
-        fig.tight_layout()
-        fig.savefig(path, dpi=_DPI)
-    except OSError as exc:
-        raise DatasetError(path, f"cannot write ({exc.strerror or exc})") from None
-    finally:
-        plt.close(fig)
-    return path
+from dem_graph.viz.plotting import colour, pyplot, save_figure
 
 
 def _truth_over(truth: Trajectory, estimates: dict[str, Trajectory]) -> Trajectory:
@@ -62,7 +32,7 @@ def _truth_over(truth: Trajectory, estimates: dict[str, Trajectory]) -> Trajecto
 
 def trajectories_figure(path: str | Path, truth: Trajectory | None, estimates: dict[str, Trajectory]) -> Path:
     """The trajectories from above (x, y in the world frame), with the ground truth over the same time."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8.0, 6.5))
     if truth is not None:
         xy = _truth_over(truth, estimates).positions_xyz[:, :2]
@@ -78,12 +48,12 @@ def trajectories_figure(path: str | Path, truth: Trajectory | None, estimates: d
     ax.set_title("Trajectories from above (end: triangle)")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def position_error_figure(path: str | Path, truth: Trajectory, estimates: dict[str, Trajectory], t0_s: float) -> Path:
     """The norm of each estimate's position error (anchored, no alignment) against time."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8.0, 4.5))
     for k, (name, trajectory) in enumerate(estimates.items()):
         errors = trajectory_errors(trajectory, truth)
@@ -95,13 +65,13 @@ def position_error_figure(path: str | Path, truth: Trajectory, estimates: dict[s
     ax.grid(True, alpha=0.3)
     if estimates:
         ax.legend(loc="upper left", fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def local_error_figure(path: str | Path, series: dict[str, LocalErrorSeries], t0_s: float, window: str = "") -> Path:
     """The local DEM's height error in the window ahead, its mean (top) and standard deviation
     (bottom) against time, one line per estimator (the paper's Fig. 8)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, (ax_mean, ax_std) = plt.subplots(2, 1, figsize=(8.0, 6.0), sharex=True)
     for k, (name, s) in enumerate(series.items()):
         t = s.t_s - t0_s
@@ -117,7 +87,7 @@ def local_error_figure(path: str | Path, series: dict[str, LocalErrorSeries], t0
         ax.grid(True, alpha=0.3)
     if series:
         ax_mean.legend(loc="best", fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def dem_error_figure(path: str | Path, dem: Dem, truth: ElevationGrid, name: str, trajectory_xy: np.ndarray | None = None) -> Path:
@@ -125,7 +95,7 @@ def dem_error_figure(path: str | Path, dem: Dem, truth: ElevationGrid, name: str
     DEM minus truth, a diverging scale symmetric about zero)."""
     import matplotlib
 
-    plt = _pyplot()
+    plt = pyplot()
     g = dem.geometry
     extent = (g.x_min_m, g.x_max_m, g.y_min_m, g.y_max_m)
     error_cm = 100.0 * (dem.elevation.astype(float) - truth_at_cells(dem, truth))
@@ -153,7 +123,7 @@ def dem_error_figure(path: str | Path, dem: Dem, truth: ElevationGrid, name: str
         ax.set_aspect("equal")
         ax.set_xlabel("x (m, world)")
         ax.set_ylabel("y (m, world)")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
-__all__ = ["colour", "dem_error_figure", "local_error_figure", "position_error_figure", "trajectories_figure"]
+__all__ = ["dem_error_figure", "local_error_figure", "position_error_figure", "trajectories_figure"]

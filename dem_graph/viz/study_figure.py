@@ -7,7 +7,7 @@ from pathlib import Path
 
 from dem_graph.evaluation.study import StudyRow
 from dem_graph.viz.bench_figure import FRAME_BUDGET_MS
-from dem_graph.viz.compare_figures import _pyplot, _save, colour
+from dem_graph.viz.plotting import colour, pyplot, save_figure
 
 _MARKERS = ("o", "s", "^", "D", "v", "P", "X")
 
@@ -15,7 +15,7 @@ _MARKERS = ("o", "s", "^", "D", "v", "P", "X")
 def accuracy_cost_figure(path: str | Path, rows: list[StudyRow], title: str = "") -> Path:
     """Each run with a finite ATE as a point: median time per frame (x) against ATE anchored at
     the initial pose (y); colour per estimator, marker per speed; the 40 ms (25 Hz) budget dashed."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8.0, 5.5))
     speeds = sorted({r.speed_mps for r in rows})
     names = list(dict.fromkeys(r.estimator for r in rows))
@@ -33,7 +33,7 @@ def accuracy_cost_figure(path: str | Path, rows: list[StudyRow], title: str = ""
     ax.set_title(title or "Accuracy against cost, one point per run", fontsize=10)
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize=7, ncol=2)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 __all__ = ["accuracy_cost_figure"]
