@@ -5,7 +5,12 @@ from __future__ import annotations
 import csv
 import math
 
+import pytest
+
+from dem_graph.evaluation.bench_estimators import config_for_points
 from dem_graph.evaluation.study import StudyResult, StudyRow
+from dem_graph.frontend.focus import FocusArea
+from dem_graph.geometry.rig import default_rig
 
 NAN = math.nan
 
@@ -52,3 +57,18 @@ def test_csv_holds_every_row_with_its_numbers(tmp_path):
         assert written["estimator"] == row.estimator and int(written["seed"]) == row.seed
         ate = float(written["ate_m"])
         assert (math.isnan(ate) and math.isnan(row.ate_m)) or ate == row.ate_m
+
+
+@pytest.mark.parametrize("speed_mps", [None, 1.5, 5.0])
+def test_point_budget_sets_about_as_many_focus_cells_as_points_at_the_run_speed(speed_mps):
+    # the focus area grows with the stopping distance: at 5 m/s it is longer than at 1.5 m/s, and the
+    # cells must grow with it so that the cap, not the cells, limits the live points
+    rig = default_rig()
+    config = config_for_points("ptpm", 140, rig, speed_mps)
+    focus = FocusArea.for_speed(config.frontend.focus, rig, None)
+    nx, ny = focus.shape
+    assert config.frontend.focus.nominal_speed_mps == (1.5 if speed_mps is None else speed_mps)
+    assert config.frontend.max_points == 140 and config.frontend.max_laser_points == 98
+    # 0.8 cells per point by construction; ceil() of the two sides adds at most a row and a column.
+    # Sized for 1.5 m/s, the 5 m/s area would hold 770 cells.
+    assert 0.8 * 140 <= nx * ny <= 1.25 * 0.8 * 140

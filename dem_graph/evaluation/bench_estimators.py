@@ -72,15 +72,18 @@ class EstimatorBenchResult:
 BENCH_ESTIMATORS = ("gm", "ptpm", "isam2", "isam2-batch", "isam2-process")
 
 
-def config_for_points(estimator: str, max_points: int, rig) -> RunConfig:
+def config_for_points(estimator: str, max_points: int, rig, speed_mps: float | None = None) -> RunConfig:
     """The run configuration for ``estimator`` with a budget of ``max_points`` live points: 70 % of
-    them at most from the laser, and about as many focus cells as points, so that the cap is what
-    limits. ``isam2-process``: isam2 with its graph in a second process."""
+    them at most from the laser, and about as many focus cells as points in the focus area at
+    ``speed_mps`` (default: the focus settings' nominal speed, which it also becomes), so that the
+    cap is what limits. ``isam2-process``: isam2 with its graph in a second process."""
     config = RunConfig(estimator="isam2" if estimator == "isam2-process" else estimator)
     config.isam2.graph_process = estimator == "isam2-process"
     fe = config.frontend
     fe.max_points = max_points
     fe.max_laser_points = int(round(0.7 * max_points))
+    if speed_mps is not None:
+        fe.focus.nominal_speed_mps = float(speed_mps)
     # about as many focus cells as points wanted, so that the cap is what limits
     focus = FocusArea.for_speed(fe.focus, rig, None)
     area = (focus.x_far_m - focus.x_near_m) * 2 * focus.half_width_m

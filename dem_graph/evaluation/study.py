@@ -3,7 +3,8 @@
 For each seed and speed the scenario is simulated once into a dataset folder
 (``data_dir/<scenario>_seed<S>_<V>mps``); every estimator then runs on it with every point budget
 (the cap on live points, with the focus cells and laser share set as ``dem-graph bench`` sets
-them). A row holds the run's ATE (anchored and aligned), drift and time per frame (median and
+them, for the focus area at that speed, which is also the speed the run assumes before it has
+measured one). A row holds the run's ATE (anchored and aligned), drift and time per frame (median and
 p95, tracking included; for ``isam2-batch`` the online pass). No run folder and no DEM is
 written: only the numbers.
 """
@@ -121,7 +122,7 @@ class StudyResult:
 
 
 def _run_row(sequence, name: str, seed: int, speed_mps: float, max_points: int, max_frames: int | None) -> StudyRow:
-    config = config_for_points(name, max_points, sequence.rig)
+    config = config_for_points(name, max_points, sequence.rig, speed_mps)
     config.max_frames = max_frames
     nan = math.nan
     try:
