@@ -10,6 +10,7 @@ from click.testing import CliRunner
 
 from dem_graph.cli import main
 from dem_graph.dem.build import DemConfig, ground_returns
+from dem_graph.dem.export import LOCAL_ERROR_COLUMNS
 from dem_graph.dem.layers import Dem
 from dem_graph.dem.pipeline import make_run_dem
 from dem_graph.dem.returns import GroundReturns, PoseTrack
@@ -22,7 +23,7 @@ def _truth_track(sequence, dt_s=0.04) -> PoseTrack:
     return PoseTrack(t, gt.at(t), np.zeros((len(t), 6, 6)))
 
 
-def test_with_ground_truth_poses_the_smoke_dem_and_its_local_window_are_within_the_range_noise(smoke_log):
+def test_with_ground_truth_poses_the_smoke_dem_and_its_local_window_are_within_the_range_noise(smoke_log, tmp_path):
     poses = _truth_track(smoke_log)
     returns = ground_returns(smoke_log, poses)
     run_dem = make_run_dem(returns, poses, smoke_log.ground_truth, DemConfig(local_every_n_frames=1))
@@ -38,6 +39,12 @@ def test_with_ground_truth_poses_the_smoke_dem_and_its_local_window_are_within_t
     np.testing.assert_allclose(series.mean_m[ok], series.relative_mean_m[ok], atol=1e-5)
     assert lw["mean_abs_mean_m"] < 0.25 * sigma
     assert lw["mean_of_std_m"] < sigma
+    # the run folder keeps the series frame by frame (Fig. 8 for one run), to the digits written
+    paths = run_dem.write(tmp_path)
+    table = np.genfromtxt(paths["local_dem_error"], delimiter=",", names=True)
+    assert table.dtype.names == LOCAL_ERROR_COLUMNS and len(table) == len(series.t_s)
+    for name in LOCAL_ERROR_COLUMNS:
+        np.testing.assert_allclose(table[name], getattr(series, name), rtol=1e-8, atol=1e-12, equal_nan=True)
 
 
 def test_no_measurement_at_all_is_a_clear_error():

@@ -8,6 +8,10 @@
   (0 laser return, 1 map point).
 - ``dem.png``: a top view coloured by height, with a colour bar, a metre scale bar and the
   trajectory drawn on it.
+- ``local_dem_error.csv`` (with ground truth): the Fig. 8 measure frame by frame, one row per
+  evaluated time: ``t_s``, ``mean_m``, ``std_m``, ``relative_mean_m``, ``relative_std_m``,
+  ``covered_fraction`` (see :class:`~dem_graph.evaluation.dem_metrics.LocalErrorSeries`); empty
+  cells are NaN.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import numpy as np
 from dem_graph.dem.layers import Dem
 from dem_graph.dem.returns import GroundReturns
 from dem_graph.errors import DatasetError
+from dem_graph.evaluation.dem_metrics import LocalErrorSeries
 from dem_graph.io.geotiff import write_elevation_geotiff
 from dem_graph.io.ply import write_points_ply
 from dem_graph.viz.plotting import pyplot, save_figure
@@ -106,4 +111,19 @@ def write_dem_outputs(out_dir: str | Path, dem: Dem, returns: GroundReturns | No
     return paths
 
 
-__all__ = ["write_cloud_ply", "write_dem_geotiff", "write_dem_outputs", "write_dem_png"]
+LOCAL_ERROR_COLUMNS = ("t_s", "mean_m", "std_m", "relative_mean_m", "relative_std_m", "covered_fraction")
+
+
+def write_local_error_csv(path: str | Path, series: LocalErrorSeries) -> Path:
+    """Write the Fig. 8 series as CSV (:data:`LOCAL_ERROR_COLUMNS`, a header line, NaN where a
+    frame had no data); :class:`DatasetError` naming the file if it cannot."""
+    path = Path(path)
+    table = np.column_stack([getattr(series, name) for name in LOCAL_ERROR_COLUMNS])
+    try:
+        np.savetxt(path, table, delimiter=",", header=",".join(LOCAL_ERROR_COLUMNS), comments="", fmt="%.9g")
+    except OSError as exc:
+        raise DatasetError(path, f"cannot write ({exc.strerror or exc})") from None
+    return path
+
+
+__all__ = ["LOCAL_ERROR_COLUMNS", "write_cloud_ply", "write_dem_geotiff", "write_dem_outputs", "write_dem_png", "write_local_error_csv"]

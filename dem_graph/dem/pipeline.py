@@ -15,7 +15,7 @@ import numpy as np
 
 from dem_graph.datasets.base import GroundTruth
 from dem_graph.dem.build import DemConfig, ground_returns, load_run_points, load_run_poses
-from dem_graph.dem.export import write_dem_outputs
+from dem_graph.dem.export import write_dem_outputs, write_local_error_csv
 from dem_graph.dem.layers import Dem
 from dem_graph.dem.returns import GroundReturns, PoseTrack
 from dem_graph.dem.views import global_dem, local_dem, speed_at, to_local
@@ -35,14 +35,18 @@ class RunDem:
     local_series: LocalErrorSeries | None = None  # the Fig. 8 measure frame by frame, for figures
 
     def write(self, out_dir: str | Path) -> dict[str, Path]:
-        """The DEM's files; a local map's cloud and path are in its local frame."""
+        """The DEM's files (and, with the Fig. 8 series, ``local_dem_error.csv``); a local map's cloud
+        and path are in its local frame."""
         p = self.poses.T_world_body[:, :3, 3]
         returns = self.returns
         if self.dem.frame == "local":
             T = self.dem.meta["T_world_local"]
             p = (p[self.poses.t_s <= self.dem.meta["t_s"]] - T[:3, 3]) @ T[:3, :3]
             returns = to_local(returns, T)
-        return write_dem_outputs(out_dir, self.dem, returns, p[:, :2])
+        paths = write_dem_outputs(out_dir, self.dem, returns, p[:, :2])
+        if self.local_series is not None:
+            paths["local_dem_error"] = write_local_error_csv(Path(out_dir) / "local_dem_error.csv", self.local_series)
+        return paths
 
 
 def evaluate_dem(dem: Dem, truth: GroundTruth, corridor_half_width_m: float) -> dict:

@@ -113,7 +113,7 @@ def dem_error_figure(path: str | Path, dem: Dem, truth: ElevationGrid, name: str
     fig.colorbar(im, ax=ax_e, label="DEM minus truth (cm)", shrink=0.8)
     rmse = float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
     ax_z.set_title(f"DEM of {name}, {g.resolution_m:g} m cells")
-    ax_e.set_title(f"its height error: RMSE {rmse:.1f} cm over all {e.size} covered cells")
+    ax_e.set_title(f"height error: RMSE {rmse:.1f} cm over {e.size:,} cells")
     for ax in (ax_z, ax_e):
         if trajectory_xy is not None and len(trajectory_xy):
             ax.plot(trajectory_xy[:, 0], trajectory_xy[:, 1], "k-", lw=0.8, label="trajectory")
