@@ -258,3 +258,22 @@ def test_raw_stamps_and_files_must_match(tmp_path):
     drive, _, _ = make_raw_drive(tmp_path, oxts_stamps=9)
     with pytest.raises(DatasetError, match=r"oxts/timestamps.txt: 9 time stamps but 11 files in oxts/data"):
         open_kitti(drive)
+
+
+def test_cli_runs_on_a_kitti_folder_and_names_a_missing_topic(tmp_path):
+    import json
+
+    from click.testing import CliRunner
+
+    from dem_graph.cli import main
+
+    root = make_odometry_layout(tmp_path / "kitti")
+    out = tmp_path / "run"
+    result = CliRunner().invoke(main, ["--no-progress", "run", str(root), "--format", "kitti-odometry", "--ring", "40", "--estimator", "ptpm", "--max-frames", "3", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 3 and "trajectory" in metrics
+    bag = tmp_path / "x.bag"
+    bag.write_bytes(b"")
+    result = CliRunner().invoke(main, ["--no-progress", "run", str(bag), "--estimator", "ptpm", "--out", str(tmp_path / "r2")])
+    assert result.exit_code == 2 and "a ROS bag needs a rig file, the image topic, the scan topic" in result.output

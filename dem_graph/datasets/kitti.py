@@ -237,7 +237,7 @@ class _KittiSequence(Sequence):
 
     def _make_ring_laser(self, ring: int | None, ground_distance_m: float, half_fov_deg: float, step_deg: float):
         if not self._scan_files:
-            raise DatasetError(self._scan_files and self._scan_files[0] or Path(self.name), "no Velodyne scans")
+            raise DatasetError(Path(self.name), "no Velodyne scans")
         first = self._scan_files[0]
         points = read_velodyne_bin(first)
         try:
