@@ -59,7 +59,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dem_graph.datasets.base import GroundTruth, Sequence
+from dem_graph.datasets.base import GroundTruth, Sequence, merged_order
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.datasets.velodyne import (
     RingLaser,
@@ -229,11 +229,7 @@ class _KittiSequence(Sequence):
             odometry=OdometrySpec(rate_hz=rate) if odometry else None,
         )
         self._elevation: ElevationGrid | None = None
-        times = np.concatenate([[o.t_s for o in odometry], scan_t_s, frame_t_s])
-        kinds = np.concatenate([np.full(len(odometry), _ODOMETRY), np.full(len(scan_t_s), _LASER), np.full(len(frame_t_s), _CAMERA)])
-        indices = np.concatenate([np.arange(len(odometry)), np.arange(len(scan_t_s)), np.arange(len(frame_t_s))])
-        order = np.lexsort((indices, kinds, times))
-        self._order = list(zip(kinds[order].tolist(), indices[order].tolist()))
+        self._order = merged_order([o.t_s for o in odometry], scan_t_s, frame_t_s)  # _ODOMETRY, _LASER, _CAMERA
 
     def _make_ring_laser(self, ring: int | None, ground_distance_m: float, half_fov_deg: float, step_deg: float):
         if not self._scan_files:
