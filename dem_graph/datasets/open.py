@@ -27,15 +27,13 @@ class DatasetOptions:
 
 
 def detect_format(path: str | Path) -> str:
-    """The format of the dataset at ``path``, from its layout."""
+    """The format of the dataset at ``path``, from its layout; ``"folder"`` when nothing else fits."""
     from dem_graph.datasets.folder import DATASET_YAML
     from dem_graph.datasets.kitti import kitti_layout
 
     path = Path(path)
-    if not path.exists():
-        raise DatasetError(path, "dataset not found")
-    if path.is_dir() and (path / DATASET_YAML).exists():
-        return "folder"
+    if not path.exists() or (path.is_dir() and (path / DATASET_YAML).exists()):
+        return "folder"  # a missing path: the folder reader's own error names it
     if path.is_dir():
         layout = kitti_layout(path)
         if layout is not None:
@@ -44,7 +42,7 @@ def detect_format(path: str | Path) -> str:
             return "rosbag"
     if path.is_file() and path.suffix in (".bag", ".mcap", ".db3"):
         return "rosbag"
-    raise DatasetError(path, "not a dataset folder, a KITTI folder or a ROS bag (give --format)")
+    return "folder"  # the folder reader says what is missing
 
 
 def open_dataset(path: str | Path, format: str | None = None, options: DatasetOptions | None = None) -> Sequence:

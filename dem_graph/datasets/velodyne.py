@@ -15,10 +15,11 @@ fixed beams :class:`~dem_graph.geometry.rig.DirectionBeams` can hold: azimuth bi
 ``(cos el cos az, cos el sin az, sin el)`` with the ring's median elevation ``el``; a bin's range is
 the 3-D distance of the ring's point nearest the bin's centre (NaN when none is within half a bin).
 
-A revolution takes 0.1 s; at 13 m/s the vehicle moves 1.3 m meanwhile. Points are not corrected for
-that motion (the odometry benchmark's scans are not either): inside the camera's field of view,
-swept in about a fifth of the revolution, the error is a few tens of centimetres along the road,
-mostly harmless to heights on a road but not nothing.
+A revolution takes 0.1 s; at 13 m/s the vehicle moves 1.3 m meanwhile. Points are not corrected
+for that motion (the odometry benchmark's scans are not either): they are used as if taken at the
+frame's time. As the rings start and end facing forward, the two halves of the camera's field of
+view may be swept up to a revolution apart: on a flat road that moves returns along the road, not
+in height.
 
 :func:`reference_surface` builds the ground truth terrain: every point of every scan placed with the
 ground-truth poses, binned into cells; per cell the median of the points within ``band_m`` of the
