@@ -277,3 +277,43 @@ def test_cli_runs_on_a_kitti_folder_and_names_a_missing_topic(tmp_path):
     bag.write_bytes(b"")
     result = CliRunner().invoke(main, ["--no-progress", "run", str(bag), "--estimator", "ptpm", "--out", str(tmp_path / "r2")])
     assert result.exit_code == 2 and "a ROS bag needs a rig file, the image topic, the scan topic" in result.output
+
+
+def _box_scene(rng, n):
+    """Points on a ground plane, three walls and a box, sampled at random (no two samplings share points)."""
+    parts = [
+        np.column_stack([rng.uniform(-30, 30, n), rng.uniform(-30, 30, n), np.full(n, -LIDAR_H)]),
+        np.column_stack([np.full(n // 3, 25.0), rng.uniform(-10, 10, n // 3), rng.uniform(-1.7, 2, n // 3)]),
+        np.column_stack([rng.uniform(-20, 20, n // 3), np.full(n // 3, 12.0), rng.uniform(-1.7, 2, n // 3)]),
+        np.column_stack([rng.uniform(-25, 5, n // 3), np.full(n // 3, -9.0), rng.uniform(-1.7, 1, n // 3)]),
+        np.column_stack([np.full(n // 6, 8.0), rng.uniform(3, 6, n // 6), rng.uniform(-1.7, 0, n // 6)]),
+        np.column_stack([rng.uniform(8, 11, n // 6), np.full(n // 6, 3.0), rng.uniform(-1.7, 0, n // 6)]),
+    ]
+    return np.concatenate(parts)
+
+
+def test_scan_registration_recovers_a_metre_of_motion():
+    from dem_graph.datasets.velodyne import register_scans
+
+    rng = np.random.default_rng(5)
+    T_to_from = make_pose(rotation_from_rpy(0.0, 0.0, math.radians(1.0)), [1.3, 0.05, 0.02])
+    scene_to = _box_scene(rng, 60_000)
+    scene_from = _box_scene(rng, 60_000) @ T_to_from[:3, :3] - T_to_from[:3, :3].T @ T_to_from[:3, 3]  # the same world seen from the moved lidar
+    T, pairs = register_scans(scene_from, scene_to)
+    assert pairs > 1000
+    np.testing.assert_allclose(T[:3, 3], T_to_from[:3, 3], atol=0.02)
+    np.testing.assert_allclose(T[:3, :3], T_to_from[:3, :3], atol=1e-3)
+
+
+def test_the_dataset_speed_replaces_the_prior_only_when_asked():
+    from types import SimpleNamespace
+
+    from dem_graph.run import RunConfig, with_dataset_speed
+
+    sequence = SimpleNamespace(has_odometry=False, initial_speed_mps=12.5)
+    config = RunConfig()
+    assert with_dataset_speed(sequence, config) is config
+    config.motion.initial_speed_from_dataset = True
+    assert with_dataset_speed(sequence, config).motion.initial_speed_mps == 12.5
+    assert config.motion.initial_speed_mps == 0.0  # the caller's configuration is not changed
+    assert with_dataset_speed(SimpleNamespace(has_odometry=True, initial_speed_mps=12.5), config).motion.initial_speed_mps == 0.0

@@ -65,3 +65,9 @@ def _repo_config():
     from pathlib import Path
 
     return Path(__file__).resolve().parent.parent / "data" / "kitti.yaml"
+
+
+def test_starting_speed_from_the_first_two_scans(kitti_sequence):
+    truth = kitti_sequence.ground_truth.trajectory
+    true_speed = np.linalg.norm(truth.positions_xyz[1] - truth.positions_xyz[0]) / (truth.t_s[1] - truth.t_s[0])
+    assert kitti_sequence.initial_speed_mps == pytest.approx(true_speed, abs=0.3)

@@ -68,6 +68,7 @@ from dem_graph.datasets.velodyne import (
     elevation_deg,
     read_velodyne_bin,
     reference_surface,
+    register_scans,
     ring_elevations_deg,
     scan_in_world,
     split_rings,
@@ -252,6 +253,22 @@ class _KittiSequence(Sequence):
         el = float(np.median(elevation_deg(points[in_view])))
         log.info("KITTI: ring %d (elevation %.2f deg, split by %s), %.1f deg either side", ring, el, how, half_fov_deg)
         return RingLaser(ring, el, half_fov_deg, step_deg), el_all, how
+
+    @property
+    def initial_speed_mps(self) -> float | None:
+        """The speed over the first two Velodyne scans, from registering them (point-to-plane ICP on
+        all 64 rings): the log's own estimate of the starting speed, for a run without odometry
+        (``motion.initial_speed_from_dataset``). None when it cannot be had. Computed once."""
+        if not hasattr(self, "_initial_speed_mps"):
+            self._initial_speed_mps = None
+            if len(self._scan_files) > 1 and self._scan_t_s[1] > self._scan_t_s[0]:
+                T_first_second, pairs = register_scans(read_velodyne_bin(self._scan_files[1]), read_velodyne_bin(self._scan_files[0]))
+                if pairs >= 500:
+                    self._initial_speed_mps = float(np.linalg.norm(T_first_second[:3, 3]) / (self._scan_t_s[1] - self._scan_t_s[0]))
+                    log.info("KITTI: starting speed %.2f m/s from the first two scans (%d point pairs)", self._initial_speed_mps, pairs)
+                else:
+                    log.warning("KITTI: the first two scans do not register (%d point pairs): no starting speed from them", pairs)
+        return self._initial_speed_mps
 
     @property
     def ring(self) -> int:

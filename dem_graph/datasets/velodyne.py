@@ -244,6 +244,52 @@ def scan_in_world(points: np.ndarray, T_world_lidar: np.ndarray) -> np.ndarray:
     return transform_points(T_world_lidar, points[:, :3].astype(float))
 
 
+def _voxel_downsample(points: np.ndarray, voxel_m: float, range_min_m: float, range_max_m: float) -> np.ndarray:
+    """One point per occupied voxel (the first stored), of the points between the two ranges."""
+    p = np.asarray(points, dtype=float)[:, :3]
+    r = np.linalg.norm(p, axis=1)
+    p = p[(r > range_min_m) & (r < range_max_m)]
+    _, first = np.unique(np.floor(p / voxel_m).astype(np.int64), axis=0, return_index=True)
+    return p[np.sort(first)]
+
+
+def register_scans(points_from: np.ndarray, points_to: np.ndarray, iterations: int = 30, voxel_m: float = 0.3, range_max_m: float = 40.0) -> tuple[np.ndarray, int]:
+    """``T_to_from``, the pose of scan ``points_from``'s lidar in scan ``points_to``'s frame, by
+    point-to-plane ICP from the identity (motion between consecutive scans), and the number of
+    point pairs used in the last iteration. Points are thinned to one per ``voxel_m`` cube; only
+    pairs on locally planar patches within 1 m (0.5 m after ten iterations) count."""
+    from scipy.spatial import cKDTree
+
+    from dem_graph.geometry.lie import so3_exp
+
+    src = _voxel_downsample(points_from, voxel_m, 3.0, range_max_m)
+    dst = _voxel_downsample(points_to, voxel_m, 3.0, range_max_m)
+    tree = cKDTree(dst)
+    _, neighbours = tree.query(dst, k=10)
+    q = dst[neighbours] - dst[neighbours].mean(axis=1, keepdims=True)
+    eigenvalues, eigenvectors = np.linalg.eigh(np.einsum("nki,nkj->nij", q, q))
+    normal = eigenvectors[:, :, 0]
+    planar = eigenvalues[:, 0] / (eigenvalues.sum(axis=1) + 1e-12) < 0.05
+    T = np.eye(4)
+    used = 0
+    for it in range(iterations):
+        moved = src @ T[:3, :3].T + T[:3, 3]
+        distance, j = tree.query(moved)
+        pair = (distance < (1.0 if it < 10 else 0.5)) & planar[j]
+        used = int(pair.sum())
+        if used < 6:
+            break
+        a, n = moved[pair], normal[j[pair]]
+        residual = np.einsum("ni,ni->n", a - dst[j[pair]], n)
+        J = np.hstack([np.cross(a, n), n])
+        step = -np.linalg.solve(J.T @ J + 1e-6 * np.eye(6), J.T @ residual)
+        dT = np.eye(4)
+        dT[:3, :3] = so3_exp(step[:3])
+        dT[:3, 3] = step[3:]
+        T = dT @ T
+    return T, used
+
+
 __all__ = [
     "RingLaser",
     "VELODYNE_RINGS",
@@ -252,6 +298,7 @@ __all__ = [
     "elevation_deg",
     "read_velodyne_bin",
     "reference_surface",
+    "register_scans",
     "ring_elevations_deg",
     "scan_in_world",
     "split_by_azimuth",
