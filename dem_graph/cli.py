@@ -80,10 +80,36 @@ def simulate(scenario_name, seed, length_m, speed_mps, no_odometry, out_dir, ove
         click.echo(f"picture: {result.preview_png}")
 
 
-def _open_dataset(path: Path):
-    from dem_graph.datasets import FolderSequence
+def _open_dataset(path: Path, fmt: str | None = None, **options):
+    """The dataset at ``path``: a dataset folder, KITTI (either layout) or a ROS bag (told from the path unless ``fmt``)."""
+    from dem_graph.datasets.open import DatasetOptions, open_dataset
 
-    return FolderSequence(path)
+    return open_dataset(path, fmt, DatasetOptions(**{k: v for k, v in options.items() if v is not None}))
+
+
+_DATASET_OPTIONS = (
+    click.option("--format", "fmt", type=click.Choice(["folder", "kitti-odometry", "kitti-raw", "rosbag"]), default=None, help="Dataset format [default: told from the path]."),
+    click.option("--sequence", default=None, help="KITTI odometry: the sequence number, when the folder holds several."),
+    click.option("--ring", type=click.IntRange(0, 63), default=None, help="KITTI: the Velodyne ring used as the line laser (0 highest, 63 lowest) [default: the one hitting the road about 10 m ahead]."),
+    click.option("--rig", type=click.Path(dir_okay=False, path_type=Path), default=None, help="ROS bag: the rig YAML."),
+    click.option("--image-topic", default=None, help="ROS bag: sensor_msgs Image or CompressedImage topic."),
+    click.option("--scan-topic", default=None, help="ROS bag: sensor_msgs LaserScan topic."),
+    click.option("--odometry-topic", default=None, help="ROS bag: nav_msgs Odometry topic (optional)."),
+    click.option("--body-frame", default=None, help="ROS bag: body frame in tf_static (with --camera-frame, --laser-frame: extrinsics from tf)."),
+    click.option("--camera-frame", default=None, help="ROS bag: camera frame in tf_static."),
+    click.option("--laser-frame", default=None, help="ROS bag: laser frame in tf_static."),
+)
+_DATASET_KEYS = ("sequence", "ring", "rig", "image_topic", "scan_topic", "odometry_topic", "body_frame", "camera_frame", "laser_frame")
+
+
+def _dataset_options(fn):
+    for option in reversed(_DATASET_OPTIONS):
+        fn = option(fn)
+    return fn
+
+
+def _pop_dataset_options(kwargs: dict) -> dict:
+    return {"fmt": kwargs.pop("fmt")} | {k: kwargs.pop(k) for k in _DATASET_KEYS}
 
 
 @main.command()
@@ -102,13 +128,14 @@ def _open_dataset(path: Path):
 @click.option("--max-points", type=int, default=None, help="Cap n on live points.")
 @click.option("--no-odometry", is_flag=True, help="Ignore the dataset's odometry (constant-velocity model).")
 @click.option("--max-frames", type=int, default=None, help="Stop after this many camera frames.")
+@_dataset_options
 @_friendly_errors
-def run(dataset, estimator, lag_s, keyframe_every, graph_process, out_dir, config_path, max_points, no_odometry, max_frames) -> None:
-    """Run an estimator over a dataset folder; write trajectory.tum, points.ply, metrics.json, config.yaml
+def run(dataset, estimator, lag_s, keyframe_every, graph_process, out_dir, config_path, max_points, no_odometry, max_frames, **kwargs) -> None:
+    """Run an estimator over a dataset (folder, KITTI or ROS bag); write trajectory.tum, points.ply, metrics.json, config.yaml
     (isam2 also trajectory_smoothed.tum; isam2-batch also trajectory_online.tum)."""
     from dem_graph.run import load_run_config, run_estimator, summary_lines, write_run
 
-    sequence = _open_dataset(dataset)
+    sequence = _open_dataset(dataset, **_pop_dataset_options(kwargs))
     config = load_run_config(
         config_path, estimator=estimator, max_points=max_points, no_odometry=no_odometry, max_frames=max_frames, lag_s=lag_s, keyframe_every=keyframe_every,
         graph_process=graph_process,
@@ -187,8 +214,9 @@ def evaluate(run_dir, dataset, out_path) -> None:
 @click.option("--estimators", default="gm,ptpm,isam2,isam2-batch", show_default=True, help="Comma-separated estimators to run.")
 @click.option("--max-frames", type=int, default=None, help="Stop each run after this many camera frames.")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="YAML run configuration shared by every run (its estimator is ignored).")
+@_dataset_options
 @_friendly_errors
-def compare(dataset, out_dir, estimators, max_frames, config_path) -> None:
+def compare(dataset, out_dir, estimators, max_frames, config_path, **kwargs) -> None:
     """Run the estimators on the same data and settings; print one table, write each run into
     OUT/<estimator>/, OUT/summary.json, OUT/report.md and a self-contained OUT/report.html."""
     from dem_graph.evaluation.compare import compare as run_comparison
@@ -197,7 +225,8 @@ def compare(dataset, out_dir, estimators, max_frames, config_path) -> None:
 
     names = parse_estimators(estimators)
     config = load_run_config(config_path, max_frames=max_frames)
-    result = run_comparison(_open_dataset(dataset), out_dir, names, config, dataset=Path(dataset).resolve())
+    sequence = _open_dataset(dataset, **_pop_dataset_options(kwargs))
+    result = run_comparison(sequence, out_dir, names, config, dataset=Path(dataset).resolve())
     click.echo(result.table())
     click.echo(f"report: {result.paths['report_html']} (and report.md); summary: {result.paths['summary']}")
     click.echo(f"run folders: {', '.join(str(r.run_dir) for r in result.runs)}")

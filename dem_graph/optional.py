@@ -23,3 +23,8 @@ def import_open3d():
 def import_rasterio():
     return _import("rasterio", "pip install rasterio")
 
+
+
+def import_rosbags_highlevel():
+    """``rosbags.highlevel`` (AnyReader), for reading ROS 1 and ROS 2 bags."""
+    return _import("rosbags.highlevel", "pip install rosbags (or pip install 'dem-graph[ros]')")

@@ -96,8 +96,22 @@ def feed(estimator: Estimator, sequence: Sequence, max_frames: int | None = None
         estimator.finish()
 
 
+def with_dataset_speed(sequence: Sequence, config: RunConfig) -> RunConfig:
+    """``config``, its starting speed replaced by the dataset's own estimate (``initial_speed_mps``)
+    when ``motion.initial_speed_from_dataset`` asks for it and the dataset has one."""
+    if not config.motion.initial_speed_from_dataset or config.motion.uses_odometry(sequence.has_odometry):
+        return config
+    speed = getattr(sequence, "initial_speed_mps", None)
+    if speed is None:
+        log.warning("the dataset gives no starting speed: starting at %.2f m/s (motion.initial_speed_mps)", config.motion.initial_speed_mps)
+        return config
+    config = config.model_copy(deep=True)
+    config.motion.initial_speed_mps = float(speed)
+    return config
+
+
 def run_estimator(sequence: Sequence, config: RunConfig | None = None, with_dem: bool = True) -> RunResult:
-    config = config or RunConfig()
+    config = with_dataset_speed(sequence, config or RunConfig())
     estimator = make_estimator(sequence, config)
     start = time.perf_counter()
     error = None

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from dem_graph.datasets.memory import InMemorySequence
@@ -26,3 +28,25 @@ def tiny_folder(tmp_path_factory):
     out = tmp_path_factory.mktemp("tiny") / "smoke"
     simulate(scenario("smoke", seed=5, length_m=0.5), out, preview=False)
     return out
+
+
+SHARED_KITTI = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti_odometry"
+
+
+@pytest.fixture(scope="session")
+def kitti_sample() -> Path:
+    """The shared KITTI odometry sample (51 frames of sequence 04) at ``../shared/data/kitti_odometry``
+    from the repository's root; the test is skipped when it is absent."""
+    if not (SHARED_KITTI / "sequences").is_dir():
+        pytest.skip(f"shared KITTI sample not found at {SHARED_KITTI}")
+    return SHARED_KITTI
+
+
+@pytest.fixture(scope="session")
+def kitti_sequence(kitti_sample):
+    """The shared sample opened once, its reference ground built once."""
+    from dem_graph.datasets.kitti import open_kitti
+
+    sequence = open_kitti(kitti_sample)
+    sequence.ground_truth  # noqa: B018 - builds the reference surface once for every test
+    return sequence

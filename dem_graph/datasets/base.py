@@ -22,6 +22,16 @@ class GroundTruth:
     elevation: ElevationGrid | None = None  # the terrain, world metres
 
 
+def merged_order(*stream_times) -> list[tuple[int, int]]:
+    """``(stream, index)`` of every item of the given time arrays, in time order; at equal times the
+    stream given first comes first, then the lower index (the order every reader replays events in)."""
+    times = np.concatenate([np.asarray(t, dtype=float).reshape(-1) for t in stream_times]) if stream_times else np.zeros(0)
+    kinds = np.concatenate([np.full(len(t), k) for k, t in enumerate(stream_times)]) if stream_times else np.zeros(0, dtype=int)
+    indices = np.concatenate([np.arange(len(t)) for t in stream_times]) if stream_times else np.zeros(0, dtype=int)
+    order = np.lexsort((indices, kinds, times))
+    return list(zip(kinds[order].tolist(), indices[order].tolist()))
+
+
 class Sequence(abc.ABC):
     """A time-ordered stream of camera frames, laser scans and (optionally) odometry.
 

@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 import yaml
 
-from dem_graph.datasets.base import GroundTruth, Sequence
+from dem_graph.datasets.base import GroundTruth, Sequence, merged_order
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.errors import ConfigError, DatasetError
 from dem_graph.geometry.rig import SensorRig, load_rig, save_rig
@@ -373,19 +373,7 @@ class FolderSequence(Sequence):
             elevation = read_elevation(elevation_path) if elevation_path.exists() else None
             self._ground_truth = GroundTruth(trajectory, elevation)
 
-        times = np.concatenate([self._odo["t_s"], self._scan_t_s, self._frame_t_s])
-        kinds = np.concatenate(
-            [
-                np.full(len(self._odo["t_s"]), _ODOMETRY),
-                np.full(len(self._scan_t_s), _LASER),
-                np.full(len(self._frame_t_s), _CAMERA),
-            ]
-        )
-        indices = np.concatenate(
-            [np.arange(len(self._odo["t_s"])), np.arange(len(self._scan_t_s)), np.arange(len(self._frame_t_s))]
-        )
-        order = np.lexsort((indices, kinds, times))
-        self._order = list(zip(kinds[order].tolist(), indices[order].tolist()))
+        self._order = merged_order(self._odo["t_s"], self._scan_t_s, self._frame_t_s)  # _ODOMETRY, _LASER, _CAMERA
 
     @property
     def rig(self) -> SensorRig:

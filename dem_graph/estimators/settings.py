@@ -26,6 +26,9 @@ class MotionConfig(StrictModel):
     sigma_linear_acc_mps2: float = Field(1.5, gt=0, description="constant-velocity model: linear acceleration noise, m/s^2/sqrt(Hz)")
     initial_speed_mps: float = Field(0.0, description="constant-velocity model: initial forward speed, m/s")
     initial_sigma_speed_mps: float = Field(1.0, gt=0, description="constant-velocity model: initial speed uncertainty, m/s")
+    initial_speed_from_dataset: bool = Field(
+        False, description="constant-velocity model: start at the dataset's own estimate of the speed when it has one (KITTI: from its first two lidar scans) instead of initial_speed_mps"
+    )
     wait_for_odometry: bool = Field(True, description="hold a frame until the odometry covering its time arrives (instead of extrapolating)")
     initial_sigma_pose: float = Field(1e-4, gt=0, description="initial pose uncertainty (radians and metres); the estimate is anchored at the initial pose")
 

@@ -112,11 +112,11 @@ def _trajectory_accuracy(path: Path, truth: GroundTruth) -> dict:
 
 
 def open_sequence(sequence: Sequence | str | Path) -> Sequence:
-    """``sequence`` itself, or the dataset folder at that path."""
+    """``sequence`` itself, or the dataset at that path (a dataset folder, or KITTI with its default options)."""
     if isinstance(sequence, (str, Path)):
-        from dem_graph.datasets.folder import FolderSequence
+        from dem_graph.datasets.open import open_dataset
 
-        return FolderSequence(sequence)
+        return open_dataset(sequence)
     return sequence
 
 

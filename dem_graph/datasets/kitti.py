@@ -1,0 +1,586 @@
+"""KITTI logs as :class:`Sequence`s: the odometry benchmark layout and the raw (synced) layout.
+
+Odometry layout (:class:`KittiOdometrySequence`)::
+
+    ROOT/sequences/NN/image_0/000000.png   left grey camera, rectified
+    ROOT/sequences/NN/velodyne/000000.bin  Velodyne HDL-64E scans (float32 x, y, z, reflectance)
+    ROOT/sequences/NN/calib.txt            P0..P3 (3x4) and Tr (lidar -> camera 0, 3x4), row-major
+    ROOT/sequences/NN/times.txt            one time per frame, seconds
+    ROOT/poses/NN.txt                      camera-0 poses in the first camera frame (3x4 per line), if known
+
+Raw layout (:class:`KittiRawSequence`)::
+
+    DATE/DATE_drive_XXXX_sync/image_00/data/*.png, image_00/timestamps.txt
+    DATE/DATE_drive_XXXX_sync/velodyne_points/data/*.bin, timestamps.txt (facing forward),
+                                           timestamps_start.txt, timestamps_end.txt
+    DATE/DATE_drive_XXXX_sync/oxts/data/*.txt (30 values per line), oxts/timestamps.txt
+    DATE/calib_cam_to_cam.txt, calib_velo_to_cam.txt, calib_imu_to_velo.txt (or in the drive folder)
+
+Time stamps of the raw layout (``2011-09-26 13:02:25.964389445``) become seconds after the drive's
+first OXTS time stamp.
+
+Frames (all right-handed, metres):
+
+- body: the lidar frame (x forward, y left, z up) moved down by ``lidar_height_m`` (1.73 m, KITTI's
+  mounting height), so that the body's z = 0 plane is the road under the vehicle, as the front end's
+  focus area assumes. ``T_body_lidar`` is a pure translation.
+- camera: ``T_body_cam = T_body_lidar @ inv(T_cam_lidar)``, ``T_cam_lidar`` being ``Tr`` (odometry) or
+  ``R_rect_00 @ [R|T]`` of ``calib_velo_to_cam.txt`` (raw); intrinsics from ``P0`` / ``P_rect_00``, no
+  distortion (the images are rectified).
+- laser: one ring of the 64 (see :mod:`dem_graph.datasets.velodyne`), its beams in the lidar frame,
+  so ``T_body_laser = T_body_lidar``.
+- world, odometry layout: the body frame at the first frame (z up as far as the car stands level
+  there); the ground truth is ``T_world_body = T_body_cam @ T_cam0_cami @ inv(T_body_cam)``.
+- world, raw layout: east-north-up, from the OXTS latitude and longitude through the Mercator
+  projection with the scale of the first latitude, as the KITTI development kit describes; its
+  origin is the first OXTS position. OXTS roll, pitch and yaw give the IMU's orientation
+  (``Rz(yaw) Ry(pitch) Rx(roll)``), ``T_body_imu = T_body_lidar @ inv(T_imu_to_velo)``.
+
+Odometry: the odometry layout has none (the estimators then use their constant-velocity model).
+The raw layout's OXTS velocities give increments: the forward, leftward and upward velocity and
+angular rate (``vf vl vu``, ``wf wl wu``, in the heading frame) are turned into the IMU frame with
+the OXTS roll and pitch, averaged over consecutive samples, and integrated as a constant twist
+over each interval; their covariance is :class:`~dem_graph.geometry.rig.OdometrySpec`'s for the
+distance travelled.
+
+Ground truth: the trajectory, and :attr:`ground_truth`'s elevation, the reference ground built from
+all 64 rings of every scan placed with the ground-truth poses
+(:func:`~dem_graph.datasets.velodyne.reference_surface`), made when first asked for.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterator
+from datetime import datetime, timezone
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from dem_graph.datasets.base import GroundTruth, Sequence, merged_order
+from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
+from dem_graph.datasets.velodyne import (
+    RingLaser,
+    RingSplitError,
+    choose_ring,
+    elevation_deg,
+    read_velodyne_bin,
+    reference_surface,
+    register_scans,
+    ring_elevations_deg,
+    scan_in_world,
+    split_rings,
+)
+from dem_graph.errors import DatasetError
+from dem_graph.geometry.grid import ElevationGrid
+from dem_graph.geometry.rig import CameraSpec, LaserSpec, OdometrySpec, SensorRig
+from dem_graph.geometry.se3 import invert, make_pose, nearest_pose, rotation_from_rpy
+from dem_graph.geometry.trajectory import Trajectory
+from dem_graph.progress import progress
+
+log = logging.getLogger(__name__)
+
+LIDAR_HEIGHT_M = 1.73  # KITTI's Velodyne above the road
+EARTH_RADIUS_M = 6378137.0
+_ODOMETRY, _LASER, _CAMERA = 0, 1, 2
+
+
+# ----------------------------------------------------------------------------------------------
+# small file readers
+
+
+def read_calib_file(path: str | Path) -> dict[str, np.ndarray]:
+    """``key: numbers`` lines of a KITTI calibration file; lines whose values are not numbers
+    (``calib_time``) are skipped. Raises :class:`DatasetError` naming a missing file."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "calibration file not found")
+    out: dict[str, np.ndarray] = {}
+    for line in path.read_text(errors="replace").splitlines():
+        key, sep, values = line.partition(":")
+        if not sep:
+            continue
+        try:
+            out[key.strip()] = np.array([float(v) for v in values.split()])
+        except ValueError:
+            continue
+    return out
+
+
+def _calib_matrix(calib: dict, key: str, shape: tuple[int, int], path: Path) -> np.ndarray:
+    if key not in calib:
+        raise DatasetError(path, f"no '{key}' entry")
+    if calib[key].size != shape[0] * shape[1]:
+        raise DatasetError(path, f"'{key}' has {calib[key].size} values, expected {shape[0] * shape[1]}")
+    return calib[key].reshape(shape)
+
+
+def _pose_from_3x4(M: np.ndarray) -> np.ndarray:
+    return nearest_pose(np.vstack([M, [0.0, 0.0, 0.0, 1.0]]))
+
+
+def read_times(path: Path) -> np.ndarray:
+    """The odometry layout's ``times.txt``: one time in seconds per line."""
+    if not path.is_file():
+        raise DatasetError(path, "times file not found")
+    try:
+        t = np.loadtxt(path, dtype=float, ndmin=1)
+    except ValueError as exc:
+        raise DatasetError(path, f"not one number per line ({exc})") from None
+    if len(t) > 1 and np.any(np.diff(t) <= 0):
+        i = int(np.argmax(np.diff(t) <= 0)) + 1
+        raise DatasetError(path, f"times do not increase at line {i + 1}")
+    return t
+
+
+def read_kitti_timestamps(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Raw-layout time stamps ``YYYY-MM-DD HH:MM:SS.fffffffff`` as (whole UTC seconds, nanoseconds) int64 arrays."""
+    if not path.is_file():
+        raise DatasetError(path, "time stamps file not found")
+    seconds, nanos = [], []
+    for i, line in enumerate(path.read_text().splitlines()):
+        text = line.strip()
+        if not text:
+            continue
+        whole, _, frac = text.partition(".")
+        try:
+            dt = datetime.strptime(whole, "%Y-%m-%d %H:%M:%S").replace(tzinfo=timezone.utc)
+            ns = int((frac + "000000000")[:9]) if frac else 0
+        except ValueError:
+            raise DatasetError(path, f"line {i + 1}: not a time stamp 'YYYY-MM-DD HH:MM:SS.fffffffff': {text!r}") from None
+        seconds.append(int(dt.timestamp()))
+        nanos.append(ns)
+    return np.array(seconds, dtype=np.int64), np.array(nanos, dtype=np.int64)
+
+
+def read_kitti_poses(path: Path) -> np.ndarray:
+    """(N,4,4) poses, one 3x4 row-major per line."""
+    try:
+        values = np.loadtxt(path, dtype=float, ndmin=2)
+    except ValueError as exc:
+        raise DatasetError(path, f"not 12 numbers per line ({exc})") from None
+    if values.shape[1] != 12:
+        raise DatasetError(path, f"{values.shape[1]} numbers per line, expected 12 (a 3x4 pose)")
+    return np.stack([_pose_from_3x4(v.reshape(3, 4)) for v in values])
+
+
+def _files(folder: Path, suffix: str, what: str) -> list[Path]:
+    if not folder.is_dir():
+        raise DatasetError(folder, f"{what} folder not found")
+    return sorted(p for p in folder.iterdir() if p.suffix == suffix)
+
+
+def _read_image(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise DatasetError(path, "missing or not a readable image")
+    if image.dtype != np.uint8:
+        raise DatasetError(path, f"8-bit image expected, got {image.dtype}")
+    return image
+
+
+# ----------------------------------------------------------------------------------------------
+# the shared sequence
+
+
+class _KittiSequence(Sequence):
+    """Camera frames and one Velodyne ring (and odometry, when the log has it) merged in time order."""
+
+    def __init__(
+        self,
+        name: str,
+        frame_t_s: np.ndarray,
+        frame_files: list[Path],
+        scan_t_s: np.ndarray,
+        scan_files: list[Path],
+        T_cam_lidar: np.ndarray,
+        P_cam: np.ndarray,
+        image_size_px: tuple[int, int],
+        truth: Trajectory | None,
+        odometry: list[Odometry],
+        ring: int | None,
+        ground_distance_m: float,
+        azimuth_step_deg: float,
+        lidar_height_m: float,
+        T_world_body_initial: np.ndarray,
+        t_start_s: float,
+    ):
+        self.name = name
+        self._frame_t_s, self._frame_files = frame_t_s, frame_files
+        self._scan_t_s, self._scan_files = scan_t_s, scan_files
+        self._truth = truth
+        self._odometry = odometry
+        self._t_start_s = float(t_start_s)
+        self._T0 = np.array(T_world_body_initial, dtype=float)
+        self.T_body_lidar = make_pose(np.eye(3), [0.0, 0.0, lidar_height_m])
+        width, height = image_size_px
+        fx, fy, cx, cy = P_cam[0, 0], P_cam[1, 1], P_cam[0, 2], P_cam[1, 2]
+        half_fov_deg = float(np.degrees(np.arctan2(max(cx, width - 1 - cx), fx)))
+        self._ring_laser, self._ring_elevations_deg, self.ring_split = self._make_ring_laser(ring, ground_distance_m, half_fov_deg, azimuth_step_deg)
+        rate = 1.0 / float(np.median(np.diff(frame_t_s))) if len(frame_t_s) > 1 else 10.0
+        scan_rate = 1.0 / float(np.median(np.diff(scan_t_s))) if len(scan_t_s) > 1 else 10.0
+        self._rig = SensorRig(
+            camera=CameraSpec(
+                width_px=width, height_px=height, fx_px=fx, fy_px=fy, cx_px=cx, cy_px=cy, distortion=(0.0, 0.0, 0.0, 0.0, 0.0),
+                rate_hz=rate, noise_sigma_dn=2.0, T_body_cam=self.T_body_lidar @ invert(T_cam_lidar),
+            ),
+            laser=LaserSpec(T_body_laser=self.T_body_lidar, beams=self._ring_laser.beams(), range_min_m=2.0, range_max_m=80.0, range_sigma_m=0.02, rate_hz=scan_rate),
+            odometry=OdometrySpec(rate_hz=rate) if odometry else None,
+        )
+        self._elevation: ElevationGrid | None = None
+        self._order = merged_order([o.t_s for o in odometry], scan_t_s, frame_t_s)  # _ODOMETRY, _LASER, _CAMERA
+
+    def _make_ring_laser(self, ring: int | None, ground_distance_m: float, half_fov_deg: float, step_deg: float):
+        if not self._scan_files:
+            raise DatasetError(Path(self.name), "no Velodyne scans")
+        first = self._scan_files[0]
+        points = read_velodyne_bin(first)
+        try:
+            ring_of, how = split_rings(points)
+            if ring is None:
+                ring = choose_ring(points, ring_of, half_fov_deg, ground_distance_m)
+        except RingSplitError as exc:
+            raise DatasetError(first, str(exc)) from None
+        if not 0 <= ring < 64:
+            raise DatasetError(first, f"ring {ring} does not exist: the Velodyne has rings 0 (highest) to 63")
+        el_all = ring_elevations_deg(points, ring_of)
+        az = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+        in_view = (ring_of == ring) & (np.abs(az) <= half_fov_deg)
+        if in_view.sum() < 10:
+            raise DatasetError(first, f"ring {ring} has no returns in the camera's field of view")
+        el = float(np.median(elevation_deg(points[in_view])))
+        log.info("KITTI: ring %d (elevation %.2f deg, split by %s), %.1f deg either side", ring, el, how, half_fov_deg)
+        return RingLaser(ring, el, half_fov_deg, step_deg), el_all, how
+
+    @property
+    def initial_speed_mps(self) -> float | None:
+        """The speed over the first two Velodyne scans, from registering them (point-to-plane ICP on
+        all 64 rings): the log's own estimate of the starting speed, for a run without odometry
+        (``motion.initial_speed_from_dataset``). None when it cannot be had. Computed once."""
+        if not hasattr(self, "_initial_speed_mps"):
+            self._initial_speed_mps = None
+            if len(self._scan_files) > 1 and self._scan_t_s[1] > self._scan_t_s[0]:
+                T_first_second, pairs = register_scans(read_velodyne_bin(self._scan_files[1]), read_velodyne_bin(self._scan_files[0]))
+                if pairs >= 500:
+                    self._initial_speed_mps = float(np.linalg.norm(T_first_second[:3, 3]) / (self._scan_t_s[1] - self._scan_t_s[0]))
+                    log.info("KITTI: starting speed %.2f m/s from the first two scans (%d point pairs)", self._initial_speed_mps, pairs)
+                else:
+                    log.warning("KITTI: the first two scans do not register (%d point pairs): no starting speed from them", pairs)
+        return self._initial_speed_mps
+
+    @property
+    def ring(self) -> int:
+        return self._ring_laser.ring
+
+    @property
+    def ring_laser(self) -> RingLaser:
+        return self._ring_laser
+
+    @property
+    def rig(self) -> SensorRig:
+        return self._rig
+
+    @property
+    def t_start_s(self) -> float:
+        return self._t_start_s
+
+    @property
+    def T_world_body_initial(self) -> np.ndarray:
+        return self._T0.copy()
+
+    @property
+    def has_odometry(self) -> bool:
+        return bool(self._odometry)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self._frame_t_s)
+
+    def event_count(self) -> int:
+        return len(self._order)
+
+    def read_scan(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Scan ``i``'s points (N,4) and their ring numbers."""
+        points = read_velodyne_bin(self._scan_files[i])
+        try:
+            ring_of, _ = split_rings(points, self._ring_elevations_deg)
+        except RingSplitError as exc:
+            raise DatasetError(self._scan_files[i], str(exc)) from None
+        return points, ring_of
+
+    def _scan_ranges(self, i: int) -> np.ndarray:
+        points, ring_of = self.read_scan(i)
+        return self._ring_laser.ranges_m(points, ring_of)
+
+    def laser_scans(self) -> tuple[np.ndarray, np.ndarray]:
+        ranges = [self._scan_ranges(i) for i in range(len(self._scan_files))]
+        return self._scan_t_s.copy(), np.array(ranges, dtype=float).reshape(len(ranges), self._rig.laser.beams.count)
+
+    def events(self) -> Iterator[Event]:
+        for kind, i in self._order:
+            if kind == _ODOMETRY:
+                yield self._odometry[i]
+            elif kind == _LASER:
+                yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges(i), i)
+            else:
+                yield CameraFrame(float(self._frame_t_s[i]), _read_image(self._frame_files[i]), i)
+
+    @property
+    def ground_truth(self) -> GroundTruth | None:
+        if self._truth is None:
+            return None
+        if self._elevation is None:
+            self._elevation = self.reference_elevation()
+        return GroundTruth(self._truth, self._elevation)
+
+    def reference_elevation(self, resolution_m: float = 0.2, max_range_m: float = 40.0, margin_m: float = 20.0) -> ElevationGrid:
+        """The reference ground from all 64 rings of every scan inside the ground truth's time span,
+        placed with the ground-truth poses; points farther than ``max_range_m`` from the lidar are
+        left out, and the grid covers the trajectory ``margin_m`` around."""
+        truth = self._truth
+        if truth is None:
+            raise DatasetError(Path(self.name), "no ground-truth trajectory: no reference surface")
+        clouds = []
+        inside = (self._scan_t_s >= truth.t_s[0]) & (self._scan_t_s <= truth.t_s[-1])
+        for i in progress(np.flatnonzero(inside), total=int(inside.sum()), desc="reference ground", unit="scan"):
+            points = read_velodyne_bin(self._scan_files[i])[:, :3]
+            points = points[np.linalg.norm(points, axis=1) <= max_range_m]
+            T_world_lidar = truth.at(np.array([self._scan_t_s[i]]))[0] @ self.T_body_lidar
+            clouds.append(scan_in_world(points, T_world_lidar))
+        xy = truth.positions_xyz[:, :2]
+        lo, hi = xy.min(axis=0) - margin_m, xy.max(axis=0) + margin_m
+        try:
+            return reference_surface(clouds, resolution_m, bounds_xy_m=(lo[0], lo[1], hi[0], hi[1]))
+        except ValueError as exc:
+            raise DatasetError(self._scan_files[0], f"no reference surface: {exc}") from None
+
+
+# ----------------------------------------------------------------------------------------------
+# the odometry layout
+
+
+class KittiOdometrySequence(_KittiSequence):
+    """A sequence of the KITTI odometry benchmark (``ROOT/sequences/NN``, ``ROOT/poses/NN.txt``).
+
+    ``ring``: the Velodyne ring used as the line laser (0 highest .. 63); default the one whose
+    returns ahead lie nearest ``ground_distance_m``. ``azimuth_step_deg``: its beams' spacing.
+    """
+
+    def __init__(self, root: str | Path, sequence: str | int | None = None, ring: int | None = None, ground_distance_m: float = 10.0, azimuth_step_deg: float = 0.25, lidar_height_m: float = LIDAR_HEIGHT_M):
+        root = Path(root)
+        if (root / "image_0").is_dir() and root.parent.name == "sequences":
+            sequence, root = root.name if sequence is None else sequence, root.parent.parent
+        seq_root = root / "sequences"
+        if not seq_root.is_dir():
+            raise DatasetError(seq_root, "not found: not a KITTI odometry folder (ROOT/sequences/NN)")
+        if sequence is None:
+            names = sorted(p.name for p in seq_root.iterdir() if p.is_dir())
+            if len(names) != 1:
+                raise DatasetError(seq_root, f"holds {len(names)} sequences ({', '.join(names) or 'none'}): give the sequence number")
+            sequence = names[0]
+        sequence = f"{int(sequence):02d}" if str(sequence).isdigit() else str(sequence)
+        folder = seq_root / sequence
+        if not folder.is_dir():
+            raise DatasetError(folder, "sequence folder not found")
+        self.path = folder
+        calib_path = folder / "calib.txt"
+        calib = read_calib_file(calib_path)
+        P0 = _calib_matrix(calib, "P0", (3, 4), calib_path)
+        T_cam_lidar = _pose_from_3x4(_calib_matrix(calib, "Tr", (3, 4), calib_path))
+        times_path = folder / "times.txt"
+        t_s = read_times(times_path)
+        images = _files(folder / "image_0", ".png", "image_0")
+        scans = _files(folder / "velodyne", ".bin", "velodyne")
+        if len(images) != len(t_s):
+            raise DatasetError(times_path, f"{len(t_s)} times but {len(images)} images in image_0: they must match")
+        if len(scans) != len(t_s):
+            raise DatasetError(times_path, f"{len(t_s)} times but {len(scans)} scans in velodyne: they must match")
+        if not images:
+            raise DatasetError(folder / "image_0", "no images")
+        first = _read_image(images[0])
+        T_body_lidar = make_pose(np.eye(3), [0.0, 0.0, lidar_height_m])
+        T_body_cam = T_body_lidar @ invert(T_cam_lidar)
+        truth = None
+        poses_path = root / "poses" / f"{sequence}.txt"
+        if poses_path.is_file():
+            T_cam0_cam = read_kitti_poses(poses_path)
+            if len(T_cam0_cam) != len(t_s):
+                raise DatasetError(poses_path, f"{len(T_cam0_cam)} poses but {len(t_s)} times in {times_path}: they must match")
+            T_world_body = T_body_cam @ T_cam0_cam @ invert(T_body_cam)
+            truth = Trajectory.from_poses(t_s, nearest_pose(T_world_body))
+        super().__init__(
+            f"kitti-odometry-{sequence}", t_s, images, t_s.copy(), scans, T_cam_lidar, P0, (first.shape[1], first.shape[0]),
+            truth, [], ring, ground_distance_m, azimuth_step_deg, lidar_height_m, np.eye(4), float(t_s[0]),
+        )
+
+    def __repr__(self) -> str:
+        return f"KittiOdometrySequence({str(self.path)!r}, frames={self.n_frames}, ring={self.ring})"
+
+
+# ----------------------------------------------------------------------------------------------
+# the raw layout
+
+
+def oxts_poses(oxts: np.ndarray) -> np.ndarray:
+    """(N,4,4) IMU poses ``T_world_imu`` from OXTS rows (lat, lon, alt, roll, pitch, yaw, ...):
+    east-north-up metres by the Mercator projection scaled at the first latitude, origin at the first position."""
+    lat, lon, alt = oxts[:, 0], oxts[:, 1], oxts[:, 2]
+    scale = math.cos(math.radians(lat[0]))
+    x = scale * EARTH_RADIUS_M * np.radians(lon)
+    y = scale * EARTH_RADIUS_M * np.log(np.tan(np.radians(90.0 + lat) / 2.0))
+    t = np.stack([x - x[0], y - y[0], alt - alt[0]], axis=1)
+    R = rotation_from_rpy(oxts[:, 3], oxts[:, 4], oxts[:, 5])
+    return make_pose(R, t)
+
+
+def oxts_twists(oxts: np.ndarray) -> np.ndarray:
+    """(N,6) twists [angular rate, velocity] in the IMU frame from the OXTS heading-frame rates
+    ``wf wl wu`` and velocities ``vf vl vu``, turned by the OXTS roll and pitch."""
+    R_heading_imu = rotation_from_rpy(oxts[:, 3], oxts[:, 4], np.zeros(len(oxts)))
+    v_heading = oxts[:, 8:11]
+    w_heading = oxts[:, 20:23]
+    v_imu = np.einsum("nji,nj->ni", R_heading_imu, v_heading)
+    w_imu = np.einsum("nji,nj->ni", R_heading_imu, w_heading)
+    return np.concatenate([w_imu, v_imu], axis=1)
+
+
+def odometry_from_oxts(t_s: np.ndarray, oxts: np.ndarray, T_body_imu: np.ndarray, spec: OdometrySpec) -> list[Odometry]:
+    """Body increments between consecutive OXTS samples: the mean of the two twists held over the interval."""
+    import gtsam
+
+    twists = oxts_twists(oxts)
+    T_imu_body = invert(T_body_imu)
+    out = []
+    for i in range(1, len(t_s)):
+        dt = float(t_s[i] - t_s[i - 1])
+        xi = 0.5 * (twists[i - 1] + twists[i]) * dt
+        T_imu = gtsam.Pose3.Expmap(xi).matrix()
+        T_body = nearest_pose(T_body_imu @ T_imu @ T_imu_body)
+        distance = float(np.linalg.norm(T_body[:3, 3]))
+        out.append(Odometry(float(t_s[i]), float(t_s[i - 1]), T_body, spec.increment_covariance(distance), i - 1))
+    return out
+
+
+def _read_oxts(files: list[Path]) -> np.ndarray:
+    rows = []
+    for path in files:
+        try:
+            values = np.array(path.read_text().split(), dtype=float)
+        except ValueError:
+            raise DatasetError(path, "not an OXTS record (30 numbers)") from None
+        if values.size < 23:
+            raise DatasetError(path, f"{values.size} numbers, an OXTS record has 30")
+        rows.append(values[:30] if values.size >= 30 else np.concatenate([values, np.zeros(30 - values.size)]))
+    return np.array(rows).reshape(-1, 30)
+
+
+def _find_calib(drive: Path, name: str) -> Path:
+    for folder in (drive, drive.parent):
+        if (folder / name).is_file():
+            return folder / name
+    return drive.parent / name
+
+
+class KittiRawSequence(_KittiSequence):
+    """A synced drive of the KITTI raw data (``DATE/DATE_drive_XXXX_sync``), calibration files in
+    the drive folder or its parent. Ground truth and odometry from OXTS. Options as
+    :class:`KittiOdometrySequence`'s."""
+
+    def __init__(self, drive: str | Path, ring: int | None = None, ground_distance_m: float = 10.0, azimuth_step_deg: float = 0.25, lidar_height_m: float = LIDAR_HEIGHT_M, odometry_spec: OdometrySpec | None = None):
+        drive = Path(drive)
+        if not drive.is_dir():
+            raise DatasetError(drive, "drive folder not found")
+        self.path = drive
+        cam_path = _find_calib(drive, "calib_cam_to_cam.txt")
+        velo_path = _find_calib(drive, "calib_velo_to_cam.txt")
+        imu_path = _find_calib(drive, "calib_imu_to_velo.txt")
+        cam = read_calib_file(cam_path)
+        velo = read_calib_file(velo_path)
+        imu = read_calib_file(imu_path)
+        P_rect = _calib_matrix(cam, "P_rect_00", (3, 4), cam_path)
+        R_rect = make_pose(_calib_matrix(cam, "R_rect_00", (3, 3), cam_path), np.zeros(3))
+        T_cam0_velo = make_pose(_calib_matrix(velo, "R", (3, 3), velo_path), _calib_matrix(velo, "T", (3, 1), velo_path)[:, 0])
+        T_velo_imu = make_pose(_calib_matrix(imu, "R", (3, 3), imu_path), _calib_matrix(imu, "T", (3, 1), imu_path)[:, 0])
+        T_cam_lidar = nearest_pose(R_rect @ T_cam0_velo)
+
+        streams = {}
+        for key, folder, suffix in (("image", "image_00", ".png"), ("velodyne", "velodyne_points", ".bin"), ("oxts", "oxts", ".txt")):
+            stamps_path = drive / folder / "timestamps.txt"
+            files = _files(drive / folder / "data", suffix, f"{folder}/data")
+            sec, ns = read_kitti_timestamps(stamps_path)
+            if len(sec) != len(files):
+                raise DatasetError(stamps_path, f"{len(sec)} time stamps but {len(files)} files in {folder}/data: they must match")
+            if not files:
+                raise DatasetError(drive / folder / "data", "no files")
+            streams[key] = (files, sec, ns, stamps_path)
+        sec0, ns0 = streams["oxts"][1][0], streams["oxts"][2][0]
+
+        def rel(sec, ns):
+            return (sec - sec0).astype(float) + (ns - ns0) * 1e-9
+
+        t = {k: rel(v[1], v[2]) for k, v in streams.items()}
+        for k, (_, _, _, stamps_path) in streams.items():
+            if len(t[k]) > 1 and np.any(np.diff(t[k]) <= 0):
+                i = int(np.argmax(np.diff(t[k]) <= 0)) + 1
+                raise DatasetError(stamps_path, f"time stamps do not increase at line {i + 1}")
+        oxts = _read_oxts(streams["oxts"][0])
+        T_body_lidar = make_pose(np.eye(3), [0.0, 0.0, lidar_height_m])
+        T_body_imu = T_body_lidar @ T_velo_imu
+        T_world_body = oxts_poses(oxts) @ invert(T_body_imu)
+        truth = Trajectory.from_poses(t["oxts"], nearest_pose(T_world_body))
+        spec = odometry_spec or OdometrySpec(rate_hz=1.0 / float(np.median(np.diff(t["oxts"]))) if len(t["oxts"]) > 1 else 10.0)
+        odometry = odometry_from_oxts(t["oxts"], oxts, T_body_imu, spec)
+        t_start = float(t["oxts"][0])
+        keep_img = t["image"] >= t_start
+        keep_scan = t["velodyne"] >= t_start
+        if not keep_img.all() or not keep_scan.all():
+            log.info("KITTI raw: %d frames and %d scans before the first OXTS record left out", (~keep_img).sum(), (~keep_scan).sum())
+        images = [f for f, k in zip(streams["image"][0], keep_img) if k]
+        scans = [f for f, k in zip(streams["velodyne"][0], keep_scan) if k]
+        if not images:
+            raise DatasetError(drive / "image_00", "no image after the first OXTS record")
+        first = _read_image(images[0])
+        self.oxts_records = oxts
+        super().__init__(
+            f"kitti-raw-{drive.name}", t["image"][keep_img], images, t["velodyne"][keep_scan], scans, T_cam_lidar, P_rect,
+            (first.shape[1], first.shape[0]), truth, odometry, ring, ground_distance_m, azimuth_step_deg, lidar_height_m,
+            truth.poses_se3[0], t_start,
+        )
+
+    def __repr__(self) -> str:
+        return f"KittiRawSequence({str(self.path)!r}, frames={self.n_frames}, ring={self.ring})"
+
+
+def kitti_layout(path: str | Path) -> str | None:
+    """``"kitti-odometry"``, ``"kitti-raw"`` or None, from the folder's layout."""
+    path = Path(path)
+    if (path / "sequences").is_dir() or ((path / "image_0").is_dir() and (path / "times.txt").exists()):
+        return "kitti-odometry"
+    if (path / "oxts").is_dir() and (path / "image_00").is_dir():
+        return "kitti-raw"
+    return None
+
+
+def open_kitti(path: str | Path, layout: str | None = None, sequence: str | int | None = None, ring: int | None = None, ground_distance_m: float = 10.0) -> _KittiSequence:
+    """Open a KITTI folder of either layout (``layout`` None: told from the folder)."""
+    layout = layout or kitti_layout(path)
+    if layout == "kitti-odometry":
+        return KittiOdometrySequence(path, sequence, ring, ground_distance_m)
+    if layout == "kitti-raw":
+        return KittiRawSequence(path, ring, ground_distance_m)
+    raise DatasetError(path, "not a KITTI folder (neither sequences/NN nor a raw drive with image_00 and oxts)")
+
+
+__all__ = [
+    "KittiOdometrySequence",
+    "KittiRawSequence",
+    "kitti_layout",
+    "odometry_from_oxts",
+    "open_kitti",
+    "oxts_poses",
+    "oxts_twists",
+    "read_calib_file",
+    "read_kitti_timestamps",
+]

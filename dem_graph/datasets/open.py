@@ -1,0 +1,74 @@
+"""Open any dataset the package reads, from its path: a dataset folder, KITTI (either layout) or a ROS bag."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from dem_graph.datasets.base import Sequence
+from dem_graph.errors import DatasetError
+
+FORMATS = ("folder", "kitti-odometry", "kitti-raw", "rosbag")
+
+
+@dataclass
+class DatasetOptions:
+    """What a format needs beyond its path (each used only by the formats it concerns)."""
+
+    sequence: str | None = None  # KITTI odometry: the sequence number when ROOT holds several
+    ring: int | None = None  # KITTI: the Velodyne ring used as the line laser (default: the one hitting the road ~10 m ahead)
+    rig: Path | None = None  # rosbag: the rig YAML
+    image_topic: str | None = None  # rosbag
+    scan_topic: str | None = None  # rosbag
+    odometry_topic: str | None = None  # rosbag
+    body_frame: str | None = None  # rosbag: tf frame names for the extrinsics (when tf_static has them)
+    camera_frame: str | None = None
+    laser_frame: str | None = None
+
+
+def detect_format(path: str | Path) -> str:
+    """The format of the dataset at ``path``, from its layout; ``"folder"`` when nothing else fits."""
+    from dem_graph.datasets.folder import DATASET_YAML
+    from dem_graph.datasets.kitti import kitti_layout
+
+    path = Path(path)
+    if not path.exists() or (path.is_dir() and (path / DATASET_YAML).exists()):
+        return "folder"  # a missing path: the folder reader's own error names it
+    if path.is_dir():
+        layout = kitti_layout(path)
+        if layout is not None:
+            return layout
+        if (path / "metadata.yaml").exists():
+            return "rosbag"
+    if path.is_file() and path.suffix in (".bag", ".mcap", ".db3"):
+        return "rosbag"
+    return "folder"  # the folder reader says what is missing
+
+
+def open_dataset(path: str | Path, format: str | None = None, options: DatasetOptions | None = None) -> Sequence:
+    """The :class:`Sequence` at ``path``; ``format`` None: told from the path (:func:`detect_format`)."""
+    options = options or DatasetOptions()
+    fmt = format or detect_format(path)
+    if fmt == "folder":
+        from dem_graph.datasets.folder import FolderSequence
+
+        return FolderSequence(path)
+    if fmt in ("kitti-odometry", "kitti-raw"):
+        from dem_graph.datasets.kitti import open_kitti
+
+        return open_kitti(path, fmt, options.sequence, options.ring)
+    if fmt == "rosbag":
+        from dem_graph.datasets.rosbag import RosbagSequence
+        from dem_graph.geometry.rig import load_rig
+
+        missing = [n for n, v in (("a rig file", options.rig), ("the image topic", options.image_topic), ("the scan topic", options.scan_topic)) if v is None]
+        if missing:
+            raise DatasetError(path, f"a ROS bag needs {', '.join(missing)}")
+        return RosbagSequence(
+            path, load_rig(options.rig), options.image_topic, options.scan_topic, options.odometry_topic,
+            body_frame=options.body_frame, camera_frame=options.camera_frame, laser_frame=options.laser_frame,
+        )
+    raise DatasetError(path, f"unknown dataset format {fmt!r}: choose from {', '.join(FORMATS)}")
+
+
+__all__ = ["FORMATS", "DatasetOptions", "detect_format", "open_dataset"]

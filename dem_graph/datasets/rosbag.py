@@ -1,0 +1,334 @@
+"""ROS 1 and ROS 2 bags as a :class:`Sequence`, read with the ``rosbags`` package (``pip install rosbags``).
+
+The user names the topics and gives the rig (a rig YAML, :func:`~dem_graph.geometry.rig.load_rig`):
+
+- ``image_topic``: ``sensor_msgs/Image`` (encodings mono8, bgr8, rgb8, bgra8, rgba8; colour becomes
+  BGR) or ``sensor_msgs/CompressedImage`` (decoded by OpenCV);
+- ``scan_topic``: ``sensor_msgs/LaserScan``; its ``angle_min``, ``angle_increment`` and beam count
+  must be the rig's planar beams (else a :class:`DatasetError` naming the topic). A range that is not
+  finite or lies outside ``[range_min, range_max]`` becomes NaN (no return);
+- ``odometry_topic`` (optional): ``nav_msgs/Odometry``; each message after the first gives the
+  increment ``inv(T_odom_base_prev) @ T_odom_base_curr`` of its ``child_frame_id``, moved into the body
+  frame when tf knows ``body_frame`` -> child frame, else taken as the body's own; its covariance is
+  the rig's odometry model for the distance travelled (the messages' own covariances are often
+  placeholders);
+- ``/tf_static`` and ``/tf``: when ``body_frame`` with ``camera_frame`` and/or ``laser_frame`` are given
+  and the transforms link them, ``T_body_cam`` / ``T_body_laser`` come from there instead of the rig.
+
+Times are the messages' header stamps, seconds. Every stream must be in increasing time order. The
+bag has no ground truth; the initial pose is the identity at the first event's time. Scans and
+odometry are read when the bag is opened, images (with their stamps) once then again lazily while
+:meth:`RosbagSequence.events` iterates.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from dem_graph.datasets.base import Sequence
+from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
+from dem_graph.errors import DatasetError, MissingDependencyError
+from dem_graph.geometry.rig import OdometrySpec, PlanarBeams, SensorRig
+from dem_graph.geometry.se3 import invert, make_pose, matrix_from_quat_xyzw, nearest_pose
+from dem_graph.optional import import_rosbags_highlevel
+
+log = logging.getLogger(__name__)
+
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+SCAN_TYPE = "sensor_msgs/msg/LaserScan"
+ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+TF_TOPICS = ("/tf_static", "/tf")
+
+
+def _anyreader():
+    return import_rosbags_highlevel().AnyReader
+
+
+def stamp_s(header) -> float:
+    """A header's stamp in seconds (ROS 1 and ROS 2 stamps both have ``sec`` and ``nanosec`` in rosbags)."""
+    return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
+
+
+def image_from_message(msg, msgtype: str, where: str) -> np.ndarray:
+    """(H,W) grey or (H,W,3) BGR uint8 image of an Image or CompressedImage message."""
+    if msgtype.endswith("CompressedImage"):
+        image = cv2.imdecode(np.frombuffer(bytes(msg.data), dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise DatasetError(where, f"compressed image ({msg.format}) cannot be decoded")
+        if image.ndim == 3 and image.shape[2] == 4:
+            image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+        if image.dtype != np.uint8:
+            raise DatasetError(where, f"8-bit images only, got {image.dtype}")
+        return image
+    channels = {"mono8": 1, "8UC1": 1, "bgr8": 3, "rgb8": 3, "8UC3": 3, "bgra8": 4, "rgba8": 4}
+    enc = str(msg.encoding)
+    if enc not in channels:
+        raise DatasetError(where, f"image encoding {enc!r} is not supported (mono8, bgr8, rgb8, bgra8, rgba8)")
+    c, h, w, step = channels[enc], int(msg.height), int(msg.width), int(msg.step)
+    data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+    if step < w * c or data.size < h * step:
+        raise DatasetError(where, f"image data of {data.size} bytes is too short for {w}x{h} {enc} with step {step}")
+    rows = data[: h * step].reshape(h, step)[:, : w * c]
+    image = rows.reshape(h, w) if c == 1 else rows.reshape(h, w, c)
+    if enc == "rgb8":
+        image = image[:, :, ::-1]
+    elif enc == "bgra8":
+        image = image[:, :, :3]
+    elif enc == "rgba8":
+        image = image[:, :, 2::-1]
+    return np.ascontiguousarray(image)
+
+
+def ranges_from_scan(msg) -> np.ndarray:
+    """(B,) float32 ranges, NaN where not finite or outside ``[range_min, range_max]``."""
+    r = np.array(msg.ranges, dtype=np.float32)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(r) | (r < np.float32(msg.range_min)) | (r > np.float32(msg.range_max))
+    r[bad] = np.nan
+    return r
+
+
+def _pose_from_msg(pose) -> np.ndarray:
+    q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w], dtype=float)
+    return make_pose(matrix_from_quat_xyzw(q / np.linalg.norm(q)), [pose.position.x, pose.position.y, pose.position.z])
+
+
+def _transform_from_msg(t) -> np.ndarray:
+    q = np.array([t.rotation.x, t.rotation.y, t.rotation.z, t.rotation.w], dtype=float)
+    return make_pose(matrix_from_quat_xyzw(q / np.linalg.norm(q)), [t.translation.x, t.translation.y, t.translation.z])
+
+
+class TransformTree:
+    """Fixed transforms ``T_parent_child`` by frame names; :meth:`lookup` chains them either way."""
+
+    def __init__(self):
+        self._edges: dict[str, dict[str, np.ndarray]] = {}
+
+    def add(self, parent: str, child: str, T_parent_child: np.ndarray) -> None:
+        parent, child = parent.lstrip("/"), child.lstrip("/")
+        if child in self._edges.get(parent, {}):
+            return  # the first one seen stands
+        self._edges.setdefault(parent, {})[child] = T_parent_child
+        self._edges.setdefault(child, {})[parent] = invert(T_parent_child)
+
+    def lookup(self, target: str, source: str) -> np.ndarray | None:
+        """``T_target_source`` (maps ``source`` coordinates into ``target``), None when not linked."""
+        target, source = target.lstrip("/"), source.lstrip("/")
+        if target == source:
+            return np.eye(4)
+        seen = {target: np.eye(4)}
+        queue = deque([target])
+        while queue:
+            frame = queue.popleft()
+            for nxt, T in self._edges.get(frame, {}).items():
+                if nxt not in seen:
+                    seen[nxt] = seen[frame] @ T
+                    if nxt == source:
+                        return nearest_pose(seen[nxt])
+                    queue.append(nxt)
+        return None
+
+
+class RosbagSequence(Sequence):
+    """A ROS 1 (``.bag``) or ROS 2 (folder) bag read through ``rosbags``' AnyReader. See the module."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        rig: SensorRig,
+        image_topic: str,
+        scan_topic: str,
+        odometry_topic: str | None = None,
+        body_frame: str | None = None,
+        camera_frame: str | None = None,
+        laser_frame: str | None = None,
+    ):
+        self.path = Path(path)
+        self.name = self.path.stem
+        if not self.path.exists():
+            raise DatasetError(self.path, "bag not found")
+        self._image_topic, self._scan_topic, self._odometry_topic = image_topic, scan_topic, odometry_topic
+        AnyReader = _anyreader()
+        try:
+            reader_cm = AnyReader([self.path])
+            reader = reader_cm.__enter__()
+        except MissingDependencyError:
+            raise
+        except Exception as exc:  # rosbags raises its own types for a bag it cannot read
+            raise DatasetError(self.path, f"cannot open the bag ({type(exc).__name__}: {' '.join(str(exc).split())})") from None
+        try:
+            self._image_type = self._check_topic(reader, image_topic, IMAGE_TYPES)
+            self._check_topic(reader, scan_topic, (SCAN_TYPE,))
+            if odometry_topic is not None:
+                self._check_topic(reader, odometry_topic, (ODOMETRY_TYPE,))
+            tree = self._read_tf(reader)
+            rig = self._rig_with_tf(rig, tree, body_frame, camera_frame, laser_frame)
+            self._rig = rig
+            self._scan_t_s, self._scan_ranges = self._read_scans(reader)
+            self._odometry = self._read_odometry(reader, tree, body_frame) if odometry_topic is not None else []
+            self._frame_t_s = np.array([t for t, _ in self._iter_images(reader, decode=False)])
+        finally:
+            reader_cm.__exit__(None, None, None)
+        firsts = [a[0] for a in (self._frame_t_s, self._scan_t_s) if len(a)] + [o.t_prev_s for o in self._odometry[:1]]
+        self._t_start_s = float(min(firsts)) if firsts else 0.0
+
+    # --------------------------------------------------------------------------------------------
+
+    def _where(self, topic: str) -> str:
+        return f"{self.path} topic {topic}"
+
+    def _check_topic(self, reader, topic: str, types: tuple[str, ...]) -> str:
+        connections = [c for c in reader.connections if c.topic == topic]
+        if not connections:
+            present = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
+            raise DatasetError(self.path, f"no topic {topic!r} in the bag (topics: {present})")
+        msgtype = connections[0].msgtype
+        if msgtype not in types:
+            raise DatasetError(self._where(topic), f"has type {msgtype}, expected {' or '.join(types)}")
+        return msgtype
+
+    def _messages(self, reader, topic: str):
+        connections = [c for c in reader.connections if c.topic == topic]
+        for connection, _, raw in reader.messages(connections=connections):
+            yield reader.deserialize(raw, connection.msgtype)
+
+    def _read_tf(self, reader) -> TransformTree:
+        tree = TransformTree()
+        for topic in TF_TOPICS:
+            if not any(c.topic == topic for c in reader.connections):
+                continue
+            for msg in self._messages(reader, topic):
+                for tr in msg.transforms:
+                    tree.add(tr.header.frame_id, tr.child_frame_id, _transform_from_msg(tr.transform))
+        return tree
+
+    def _rig_with_tf(self, rig: SensorRig, tree: TransformTree, body: str | None, camera: str | None, laser: str | None) -> SensorRig:
+        if body is None:
+            return rig
+        camera_spec, laser_spec = rig.camera, rig.laser
+        if camera is not None:
+            T = tree.lookup(body, camera)
+            if T is None:
+                log.warning("tf does not link %s to %s: T_body_cam from the rig", body, camera)
+            else:
+                camera_spec = camera_spec.model_copy(update={"T_body_cam": T})
+        if laser is not None:
+            T = tree.lookup(body, laser)
+            if T is None:
+                log.warning("tf does not link %s to %s: T_body_laser from the rig", body, laser)
+            else:
+                laser_spec = laser_spec.model_copy(update={"T_body_laser": T})
+        return SensorRig.model_validate({**rig.model_dump(), "camera": camera_spec.model_dump(), "laser": laser_spec.model_dump()})
+
+    def _read_scans(self, reader) -> tuple[np.ndarray, np.ndarray]:
+        beams = self._rig.laser.beams
+        where = self._where(self._scan_topic)
+        if not isinstance(beams, PlanarBeams):
+            raise DatasetError(where, "a LaserScan needs the rig's laser to have planar beams")
+        times, ranges = [], []
+        for msg in self._messages(reader, self._scan_topic):
+            r = ranges_from_scan(msg)
+            if len(r) != beams.count or not np.isclose(msg.angle_min, beams.angle_min_rad, rtol=0, atol=1e-5) or not np.isclose(
+                msg.angle_increment, beams.angle_increment_rad, rtol=1e-5, atol=0
+            ):
+                raise DatasetError(
+                    where,
+                    f"scan {len(times)} has {len(r)} beams from {msg.angle_min:.6f} rad every {msg.angle_increment:.6f} rad; "
+                    f"the rig's laser has {beams.count} from {beams.angle_min_rad:.6f} every {beams.angle_increment_rad:.6f}",
+                )
+            times.append(stamp_s(msg.header))
+            ranges.append(r)
+        t = np.array(times)
+        self._check_increasing(t, self._scan_topic)
+        return t, (np.stack(ranges) if ranges else np.zeros((0, beams.count), dtype=np.float32))
+
+    def _read_odometry(self, reader, tree: TransformTree, body: str | None) -> list[Odometry]:
+        spec = self._rig.odometry or OdometrySpec()
+        out: list[Odometry] = []
+        prev = None
+        times = []
+        for msg in self._messages(reader, self._odometry_topic):
+            t, T = stamp_s(msg.header), _pose_from_msg(msg.pose.pose)
+            times.append(t)
+            if prev is not None:
+                T_inc = invert(prev[1]) @ T
+                T_body_base = tree.lookup(body, msg.child_frame_id) if body is not None and msg.child_frame_id else None
+                if T_body_base is not None:
+                    T_inc = T_body_base @ T_inc @ invert(T_body_base)
+                T_inc = nearest_pose(T_inc)
+                out.append(Odometry(t, prev[0], T_inc, spec.increment_covariance(float(np.linalg.norm(T_inc[:3, 3]))), len(out)))
+            prev = (t, T)
+        self._check_increasing(np.array(times), self._odometry_topic)
+        return out
+
+    def _iter_images(self, reader, decode: bool = True):
+        where = self._where(self._image_topic)
+        previous = -np.inf
+        for i, msg in enumerate(self._messages(reader, self._image_topic)):
+            t = stamp_s(msg.header)
+            if not t > previous:
+                raise DatasetError(where, f"message {i}: time {t!r} is not after the previous {previous!r}")
+            previous = t
+            yield t, (image_from_message(msg, self._image_type, where) if decode else None)
+
+    def _check_increasing(self, t: np.ndarray, topic: str) -> None:
+        if len(t) > 1 and np.any(np.diff(t) <= 0):
+            i = int(np.argmax(np.diff(t) <= 0)) + 1
+            raise DatasetError(self._where(topic), f"message {i}: time {t[i]!r} is not after the previous {t[i - 1]!r}")
+
+    # --------------------------------------------------------------------------------------------
+
+    @property
+    def rig(self) -> SensorRig:
+        return self._rig
+
+    @property
+    def t_start_s(self) -> float:
+        return self._t_start_s
+
+    @property
+    def T_world_body_initial(self) -> np.ndarray:
+        return np.eye(4)
+
+    @property
+    def has_odometry(self) -> bool:
+        return bool(self._odometry)
+
+    def event_count(self) -> int:
+        return len(self._frame_t_s) + len(self._scan_t_s) + len(self._odometry)
+
+    def laser_scans(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._scan_t_s.copy(), self._scan_ranges.astype(float)
+
+    def events(self) -> Iterator[Event]:
+        """Odometry, scans and images merged by time (odometry, then laser, then camera at equal times)."""
+        others = sorted(
+            [(o.t_s, 0, i) for i, o in enumerate(self._odometry)] + [(float(t), 1, i) for i, t in enumerate(self._scan_t_s)]
+        )
+        k = 0
+
+        def flush(until: float) -> Iterator[Event]:
+            nonlocal k
+            while k < len(others) and others[k][0] <= until:
+                _, kind, i = others[k]
+                k += 1
+                yield self._odometry[i] if kind == 0 else LaserScan(float(self._scan_t_s[i]), self._scan_ranges[i].copy(), i)
+
+        AnyReader = _anyreader()
+        with AnyReader([self.path]) as reader:
+            for index, (t, image) in enumerate(self._iter_images(reader)):
+                yield from flush(t)
+                yield CameraFrame(t, image, index)
+        yield from flush(np.inf)
+
+    def __repr__(self) -> str:
+        return f"RosbagSequence({str(self.path)!r}, frames={len(self._frame_t_s)}, scans={len(self._scan_t_s)}, odometry={len(self._odometry)})"
+
+
+__all__ = ["RosbagSequence", "TransformTree", "image_from_message", "ranges_from_scan", "stamp_s"]
