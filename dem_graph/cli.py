@@ -138,7 +138,7 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, out_dir, confi
     sequence = _open_dataset(dataset, **_pop_dataset_options(kwargs))
     config = load_run_config(
         config_path, estimator=estimator, max_points=max_points, no_odometry=no_odometry, max_frames=max_frames, lag_s=lag_s, keyframe_every=keyframe_every,
-        graph_process=graph_process,
+        graph_process=graph_process, dataset_settings=sequence.run_settings(),
     )
     result = run_estimator(sequence, config)
     result.metrics["dataset"] = str(Path(dataset).resolve())
@@ -224,8 +224,8 @@ def compare(dataset, out_dir, estimators, max_frames, config_path, **kwargs) -> 
     from dem_graph.run import load_run_config
 
     names = parse_estimators(estimators)
-    config = load_run_config(config_path, max_frames=max_frames)
     sequence = _open_dataset(dataset, **_pop_dataset_options(kwargs))
+    config = load_run_config(config_path, max_frames=max_frames, dataset_settings=sequence.run_settings())
     result = run_comparison(sequence, out_dir, names, config, dataset=Path(dataset).resolve())
     click.echo(result.table())
     click.echo(f"report: {result.paths['report_html']} (and report.md); summary: {result.paths['summary']}")
@@ -299,7 +299,7 @@ def track_noise(dataset, max_frames, config_path) -> None:
     from dem_graph.run import load_run_config
 
     sequence = _open_dataset(dataset)
-    click.echo(measure_tracking_noise(sequence, max_frames, load_run_config(config_path)).table())
+    click.echo(measure_tracking_noise(sequence, max_frames, load_run_config(config_path, dataset_settings=sequence.run_settings())).table())
 
 
 @main.command("bench-sim")

@@ -172,6 +172,14 @@ def compute_metrics(sequence: Sequence, run: RunResult) -> dict:
     return metrics
 
 
+def merge_settings(base: dict, over: dict) -> dict:
+    """``base`` with ``over``'s values in its place, key by key down nested mappings."""
+    out = dict(base)
+    for key, value in over.items():
+        out[key] = merge_settings(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
 def load_run_config(
     path: str | Path | None = None,
     estimator: str | None = None,
@@ -181,8 +189,10 @@ def load_run_config(
     lag_s: float | None = None,
     keyframe_every: int | None = None,
     graph_process: bool = False,
+    dataset_settings: dict | None = None,
 ) -> RunConfig:
-    """The run configuration: defaults, then the YAML file at ``path``, then the given overrides."""
+    """The run configuration: defaults, then the dataset's own settings (:meth:`Sequence.run_settings`),
+    then the YAML file at ``path``, then the given overrides."""
     data: dict = {}
     if path is not None:
         path = Path(path)
@@ -194,6 +204,8 @@ def load_run_config(
             raise ConfigError(f"cannot read the configuration ({str(exc).splitlines()[0]})", path) from None
         if not isinstance(data, dict):
             raise ConfigError("a run configuration must be a mapping", path)
+    if dataset_settings:
+        data = merge_settings(dataset_settings, data)
     try:
         config = RunConfig.model_validate(data)
         if estimator is not None:

@@ -9,11 +9,13 @@ import numpy as np
 import pytest
 
 from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.datasets.folder import FolderSequence
 from dem_graph.datasets.kitti import KittiOdometrySequence, KittiRawSequence, open_kitti, oxts_poses
 from dem_graph.datasets.open import detect_format
 from dem_graph.datasets.velodyne import RingLaser, elevation_deg, read_velodyne_bin, reference_surface, split_rings
 from dem_graph.errors import DatasetError
 from dem_graph.geometry.se3 import invert, make_pose, rotation_from_rpy
+from dem_graph.run import RunConfig, load_run_config
 
 LIDAR_H = 1.73
 ELEVATIONS_DEG = np.concatenate([np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.33, 32)])
@@ -317,3 +319,22 @@ def test_the_dataset_speed_replaces_the_prior_only_when_asked():
     assert with_dataset_speed(sequence, config).motion.initial_speed_mps == 12.5
     assert config.motion.initial_speed_mps == 0.0  # the caller's configuration is not changed
     assert with_dataset_speed(SimpleNamespace(has_odometry=True, initial_speed_mps=12.5), config).motion.initial_speed_mps == 0.0
+
+
+def test_kitti_brings_its_run_settings_under_the_users_configuration(tmp_path):
+    # the package's defaults are for a small robot at 25 Hz: KITTI's reader brings a car's settings,
+    # and a configuration file the user gives wins key by key
+    seq = open_kitti(make_odometry_layout(tmp_path / "kitti"))
+    defaults = RunConfig()
+    config = load_run_config(dataset_settings=seq.run_settings())
+    assert config.motion.initial_speed_from_dataset and not defaults.motion.initial_speed_from_dataset
+    assert config.frontend.tracker.max_search_half_size_px == 80 != defaults.frontend.tracker.max_search_half_size_px
+    assert config.frontend.focus.corridor_width_m == 6.0 and config.frontend.focus.max_distance_m == 25.0
+    user = tmp_path / "mine.yaml"
+    user.write_text("frontend:\n  focus:\n    corridor_width_m: 4.0\n")
+    config = load_run_config(user, estimator="ptpm", dataset_settings=seq.run_settings())
+    assert config.frontend.focus.corridor_width_m == 4.0  # the user's value
+    assert config.frontend.focus.max_distance_m == 25.0 and config.frontend.focus.cell_size_m == 1.0  # KITTI's, beside it
+    assert config.motion.sigma_angular_acc_radps2 == 0.2 and config.estimator == "ptpm"
+    # a dataset folder brings nothing
+    assert FolderSequence.run_settings(object.__new__(FolderSequence)) == {}

@@ -52,19 +52,13 @@ def test_events_in_order(kitti_sequence):
 def test_an_estimator_runs_on_the_first_frames(kitti_sequence):
     from dem_graph.run import load_run_config, run_estimator
 
-    config = load_run_config(_repo_config(), estimator="ptpm", max_frames=12)
+    config = load_run_config(estimator="ptpm", max_frames=12, dataset_settings=kitti_sequence.run_settings())
     run = run_estimator(kitti_sequence, config)
     assert run.error is None
     m = run.metrics
     assert m["frames"] == 12 and m["points_per_frame"]["tracked_median"] > 10
     assert m["trajectory"]["distance_m"] > 10.0
     assert m["trajectory"]["ate_rmse_m"] < 1.0  # 15 m driven without odometry
-
-
-def _repo_config():
-    from pathlib import Path
-
-    return Path(__file__).resolve().parent.parent / "data" / "kitti.yaml"
 
 
 def test_starting_speed_from_the_first_two_scans(kitti_sequence):

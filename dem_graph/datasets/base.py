@@ -59,6 +59,11 @@ class Sequence(abc.ABC):
     def ground_truth(self) -> GroundTruth | None:
         return None
 
+    def run_settings(self) -> dict:
+        """Run-configuration values this kind of log needs (a nested mapping as in ``config.yaml``),
+        applied over the defaults and under the user's own configuration file. None by default."""
+        return {}
+
     @property
     def has_odometry(self) -> bool:
         return False
