@@ -3,7 +3,7 @@ crossing it, a room behind.
 
 Everything is analytic: the laser's beams are cast against the board's rectangle and the walls of a box
 room; images are rendered by casting each pixel's ray (through the lens distortion) at the board plane,
-three by three samples per pixel, with blur and grey-level noise. Corners can also be had directly as
+a few samples per pixel, with blur and grey-level noise. Corners can also be had directly as
 the true projections plus Gaussian noise, which is what the accuracy tests use (no image needed).
 """
 
@@ -134,11 +134,10 @@ def render_board_image(sim: SimulatedCalibration, view: int, rng: np.random.Gene
     h, w = intr.height_px, intr.width_px
     offsets = (np.arange(samples) + 0.5) / samples - 0.5
     v, u = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
-    uu = (u[..., None, None] + offsets[None, None, :, None]).ravel()
-    vv = (v[..., None, None] + offsets[None, None, None, :]).ravel()
-    xy = cv2.undistortPointsIter(
-        np.stack([uu, vv], axis=1).reshape(-1, 1, 2), intr.K, intr.distortion, None, None, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-9)
-    ).reshape(-1, 2)
+    shape = (h, w, samples, samples)
+    uu = np.broadcast_to(u[..., None, None] + offsets[:, None], shape).ravel()
+    vv = np.broadcast_to(v[..., None, None] + offsets[None, :], shape).ravel()
+    xy = cv2.undistortPoints(np.stack([uu, vv], axis=1).reshape(-1, 1, 2), intr.K, intr.distortion).reshape(-1, 2)
     rays = np.column_stack([xy, np.ones(len(xy))])
     T_cb = sim.T_cam_board[view]
     n, p0 = T_cb[:3, 2], T_cb[:3, 3]
@@ -156,7 +155,7 @@ def render_board_image(sim: SimulatedCalibration, view: int, rng: np.random.Gene
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 
-def write_recording(sim: SimulatedCalibration, out_dir: str | Path, seed: int = 0) -> Path:
+def write_recording(sim: SimulatedCalibration, out_dir: str | Path, seed: int = 0, samples: int = 2) -> Path:
     """Write ``sim`` in the RADLOCC layout :func:`~dem_graph.calibration.readers.read_radlocc_recording` reads,
     with ``truth.yaml`` (the true ``T_cam_laser`` and the noise figures) beside ``data/`` and ``xml/``."""
     out = Path(out_dir)
@@ -169,7 +168,7 @@ def write_recording(sim: SimulatedCalibration, out_dir: str | Path, seed: int = 
     rng = np.random.default_rng(seed + 7919)
     for k in range(len(sim.T_cam_board)):
         path = data / f"RGB{k + 1}.png"
-        if not cv2.imwrite(str(path), render_board_image(sim, k, rng)):
+        if not cv2.imwrite(str(path), render_board_image(sim, k, rng, samples=samples)):
             raise DatasetError(path, "cannot write the image")
     write_times(sim.image_times_s, data / "camera.txt")
     write_radlocc_scans(sim.scans, data / "laser.txt")
