@@ -150,6 +150,8 @@ def _best_hypothesis(candidates: dict[int, list[LineSegment]], preferred: dict[i
         score = -float(np.sum(np.minimum(np.square(costs), tol_m**2)))  # MSAC: a view off its board costs tol^2
         if score > best_score:
             best, best_score = T, score
+        if max(costs) <= 0.5 * tol_m:  # every view has a segment well on its board: nothing left to find
+            break
     return best
 
 
