@@ -308,8 +308,9 @@ def _angle_window(text: str | None):
 @click.option("--window-deg", default=None, help="Search the board only between these beam angles, degrees, as A,B.")
 @click.option("--max-dt-s", type=float, default=0.05, show_default=True, help="Longest time between an image and its scan, seconds.")
 @click.option("--range-sigma-m", type=float, default=0.02, show_default=True, help="Range noise of the scanner, metres.")
+@click.option("--jackknife/--no-jackknife", default=True, show_default=True, help="Also the leave-one-pose-out spread of the estimate.")
 @_friendly_errors
-def calibrate(recording, rig_path, out_dir, layout, window_deg, max_dt_s, range_sigma_m) -> None:
+def calibrate(recording, rig_path, out_dir, layout, window_deg, max_dt_s, range_sigma_m, jackknife) -> None:
     """Estimate T_cam_laser from checkerboard views and write the rig with it."""
     import numpy as np
 
@@ -320,14 +321,23 @@ def calibrate(recording, rig_path, out_dir, layout, window_deg, max_dt_s, range_
 
     data = read_radlocc_recording(recording)
     rig = load_rig(rig_path) if rig_path else rig_from_recording(data, range_sigma_m)
-    options = CalibrationOptions(window_rad=_angle_window(window_deg), max_dt_s=max_dt_s, range_sigma_m=range_sigma_m)
+    options = CalibrationOptions(window_rad=_angle_window(window_deg), max_dt_s=max_dt_s, range_sigma_m=range_sigma_m, jackknife=jackknife)
     result = calibrate_recording(data, options)
     paths = write_calibration(result, data, rig, out_dir, max_dt_s)
     used = sum(v.used for v in result.views)
     np.set_printoptions(precision=4, suppress=True)
     click.echo(f"T_cam_laser from {used} of {len(result.views)} views:\n{result.T_cam_laser}")
     click.echo(f"sigma rot (deg): {np.round(result.sigma_rot_deg, 3).tolist()}, sigma trans (mm): {np.round(result.sigma_trans_mm, 1).tolist()}")
-    click.echo(f"residual RMS {result.to_dict()['residual_rms_mm']:.1f} mm, variance factor {result.variance_factor:.2f}")
+    report = result.to_dict()
+    if report["jackknife"] is not None:
+        jk = report["jackknife"]
+        click.echo(
+            f"leave-one-pose-out ({result.n_poses} poses): sigma rot (deg): {np.round(jk['sigma_rot_deg'], 3).tolist()}, "
+            f"sigma trans (mm): {np.round(jk['sigma_trans_mm'], 1).tolist()}"
+        )
+    if report["rig_covariance"] == "jackknife":
+        click.echo("the leave-one-pose-out spread exceeds the formal covariance (range errors are not white noise): the rig carries the spread")
+    click.echo(f"residual RMS {report['residual_rms_mm']:.1f} mm, variance factor {result.variance_factor:.2f}")
     click.echo(f"rig: {paths['rig']}\nreport: {paths['report']}\npictures: {paths['views']}")
 
 

@@ -41,10 +41,10 @@ def rig_from_recording(recording: CalibrationRecording, range_sigma_m: float = 0
 
 
 def rig_with_calibration(rig: SensorRig, result: CalibrationResult) -> SensorRig:
-    """``rig`` with ``T_body_laser = T_body_cam @ T_cam_laser`` and the covariance; ``T_body_cam`` kept."""
+    """``rig`` with ``T_body_laser = T_body_cam @ T_cam_laser`` and :attr:`CalibrationResult.rig_covariance`; ``T_body_cam`` kept."""
     T_body_laser = rig.T_body_cam @ result.T_cam_laser
     laser = rig.laser.model_copy(update={"T_body_laser": T_body_laser.tolist()})
-    return rig.model_copy(update={"laser": laser, "T_cam_laser_covariance": result.covariance.tolist()})
+    return rig.model_copy(update={"laser": laser, "T_cam_laser_covariance": result.rig_covariance.tolist()})
 
 
 def draw_view(image: np.ndarray, recording_ranges_m: np.ndarray, angles_rad: np.ndarray, on_board: np.ndarray, result: CalibrationResult, K, distortion, view: int) -> np.ndarray:
@@ -67,8 +67,9 @@ def draw_view(image: np.ndarray, recording_ranges_m: np.ndarray, angles_rad: np.
             cv2.circle(out, (int(round(u)), int(round(v))), 2, (255, 120, 0), 1, cv2.LINE_AA)
     report = result.views[view]
     text = f"{report.name}: {report.n_returns} returns on the board, rms {report.rms_mm:.1f} mm" if report.used else f"{report.name}: not used ({report.reason})"
-    cv2.putText(out, text, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(out, text, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
+    cv2.rectangle(out, (4, 4), (12 + w, 12 + h + base), (0, 0, 0), -1)
+    cv2.putText(out, text, (8, 8 + h), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
     return out
 
 

@@ -26,7 +26,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from dem_graph.errors import CalibrationError
-from dem_graph.geometry.lie import retract
+from dem_graph.geometry.lie import local, retract
 from dem_graph.geometry.se3 import make_pose
 
 
@@ -171,3 +171,35 @@ def refine_unweighted(views: list[PlaneView], T_initial: np.ndarray, scale_m: fl
 
     fit = least_squares(residuals, np.zeros(6), jac=jacobian, loss="huber", f_scale=scale_m, max_nfev=max_evaluations)
     return retract(T_initial, fit.x)
+
+
+def pose_groups(views: list[PlaneView], angle_tol_rad: float = np.radians(1.0), distance_tol_m: float = 0.01) -> list[list[int]]:
+    """Views grouped by board pose: a recording often holds the same pose several times, and those
+    views are not independent evidence."""
+    groups: list[list[int]] = []
+    for k, v in enumerate(views):
+        for g in groups:
+            ref = views[g[0]]
+            if np.arccos(np.clip(v.n_cam @ ref.n_cam, -1.0, 1.0)) <= angle_tol_rad and abs(v.d_m - ref.d_m) <= distance_tol_m:
+                g.append(k)
+                break
+        else:
+            groups.append([k])
+    return groups
+
+
+def jackknife_covariance(views: list[PlaneView], T: np.ndarray, range_sigma_m: float, huber_k: float = 2.5) -> tuple[np.ndarray, int] | None:
+    """Leave-one-pose-out covariance of the right perturbation at ``T`` (order [rot, trans]), and the number
+    of poses; None with fewer than four poses. Unlike :func:`refine`'s covariance it does not assume the
+    range noise is white: a range bias that differs between poses shows in it."""
+    groups = pose_groups(views)
+    if len(groups) < 4:
+        return None
+    xis = []
+    for g in groups:
+        rest = [v for k, v in enumerate(views) if k not in g]
+        xis.append(local(T, refine(rest, T, range_sigma_m, huber_k, passes=1).T_cam_laser))
+    xis = np.asarray(xis)
+    n = len(xis)
+    dev = xis - xis.mean(axis=0)
+    return (n - 1) / n * dev.T @ dev, n
