@@ -292,9 +292,9 @@ def _angle_window(text: str | None):
     try:
         lo, hi = (float(x) for x in text.split(","))
     except ValueError:
-        raise click.BadParameter("give two angles in degrees, as A,B") from None
+        raise click.BadParameter("give two angles in degrees, as A,B", param_hint="--window-deg") from None
     if not lo < hi:
-        raise click.BadParameter("the first angle must be smaller than the second")
+        raise click.BadParameter("the first angle must be smaller than the second", param_hint="--window-deg")
     import math
 
     return (math.radians(lo), math.radians(hi))
@@ -319,9 +319,9 @@ def calibrate(recording, rig_path, out_dir, layout, window_deg, max_dt_s, range_
     from dem_graph.calibration.report import rig_from_recording, write_calibration
     from dem_graph.geometry.rig import load_rig
 
+    options = CalibrationOptions(window_rad=_angle_window(window_deg), max_dt_s=max_dt_s, range_sigma_m=range_sigma_m, jackknife=jackknife)
     data = read_radlocc_recording(recording)
     rig = load_rig(rig_path) if rig_path else rig_from_recording(data, range_sigma_m)
-    options = CalibrationOptions(window_rad=_angle_window(window_deg), max_dt_s=max_dt_s, range_sigma_m=range_sigma_m, jackknife=jackknife)
     result = calibrate_recording(data, options)
     paths = write_calibration(result, data, rig, out_dir, max_dt_s)
     used = sum(v.used for v in result.views)

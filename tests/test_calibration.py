@@ -130,3 +130,9 @@ def test_pose_groups_and_leave_one_pose_out_spread():
     tripled = [v for v in views[:5] for _ in range(3)]
     assert pose_groups(tripled) == [[0, 1, 2], [3, 4, 5], [6, 7, 8], [9, 10, 11], [12, 13, 14]]
     assert jackknife_covariance(tripled[:9], refine(views, result.T_cam_laser, 0.02).T_cam_laser, 0.02) is None  # three poses
+
+
+def test_a_window_away_from_the_board_leaves_no_usable_view():
+    sim = simulate_calibration(seed=1, n_views=4)
+    with pytest.raises(CalibrationError, match="0 usable views"):
+        calibrate_views(_boards(sim, None), sim.scans.ranges_m, sim.scans.angles_rad, sim.board, CalibrationOptions(window_rad=(-1.5, -1.2)))

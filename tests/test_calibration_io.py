@@ -139,3 +139,25 @@ def test_real_hokuyo_recording_calibrates_end_to_end():
     assert result.T_cam_laser[2, 0] > 0.9 and np.linalg.norm(result.T_cam_laser[:3, 3]) < 0.3
     assert all(v.rms_mm < 40 for v in used)
     assert np.all(result.sigma_rot_deg < 1.0) and np.all(result.sigma_trans_mm < 20)
+
+
+@pytest.mark.parametrize("window", ["10", "a,b", "20,10"])
+def test_command_rejects_a_bad_window(tmp_path, window):
+    from dem_graph.cli import main
+
+    run = CliRunner().invoke(main, ["calibrate", str(tmp_path), "--out", str(tmp_path / "o"), "--window-deg", window])
+    assert run.exit_code == 2 and "--window-deg" in run.output
+
+
+def test_the_rig_keeps_its_camera_and_takes_the_new_laser_pose():
+    from dem_graph.calibration.pipeline import CalibrationResult
+    from dem_graph.calibration.report import rig_with_calibration
+    from dem_graph.geometry.rig import default_rig
+
+    rig = default_rig()
+    T = simulate_calibration(0, 1).T_cam_laser
+    cov = np.diag([1e-6] * 3 + [1e-4] * 3)
+    new = rig_with_calibration(rig, CalibrationResult(T, cov, T, 1.0, []))
+    np.testing.assert_allclose(new.T_body_cam, rig.T_body_cam, atol=0)
+    np.testing.assert_allclose(new.T_cam_laser, T, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(new.T_cam_laser_covariance), cov)
