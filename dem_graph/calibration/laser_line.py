@@ -102,7 +102,7 @@ def _robust_segment(xy: np.ndarray, beams: np.ndarray, ranges_m: np.ndarray, min
     keep = np.ones(len(xy), dtype=bool)
     for _ in range(4):
         c, direction, res = _fit_line(xy[keep])
-        _, _, res_all = c, direction, (xy - c) @ np.array([-direction[1], direction[0]])
+        res_all = (xy - c) @ np.array([-direction[1], direction[0]])
         sigma = max(1.4826 * float(np.median(np.abs(res - np.median(res)))), 0.003)
         new_keep = np.abs(res_all) <= 3.0 * sigma
         if new_keep.sum() < min_points:
