@@ -164,9 +164,9 @@ def _view(obs: BoardObservation, points_laser: np.ndarray) -> PlaneView:
 
 
 def _best_hypothesis(candidates: dict[int, list[LineSegment]], preferred: dict[int, LineSegment], boards: dict[int, BoardObservation], board: BoardSpec, options: CalibrationOptions, tol_m: float):
-    """RANSAC over views: the closed form from every view's preferred segment, then from random five, each
-    refined by a quick fit, scored (MSAC) by how far
-    each view's best candidate segment lies from its board, capped at ``tol_m``."""
+    """RANSAC over views: the closed form from every view's preferred segment, then from five random views'
+    ones, each refined by a quick fit and scored (MSAC) by how far each view's best candidate segment lies
+    from its board, capped at ``tol_m``."""
     keys = sorted(preferred)
     rng = np.random.default_rng(options.seed)
     best, best_score = None, -np.inf
@@ -185,6 +185,15 @@ def _best_hypothesis(candidates: dict[int, list[LineSegment]], preferred: dict[i
         if max(costs) <= 0.5 * tol_m:  # every view has a segment well on its board: nothing left to find
             break
     return best
+
+
+def _board_sized_segments(ranges_m: np.ndarray, angles_rad: np.ndarray, options: CalibrationOptions, min_len: float, max_len: float) -> list[LineSegment]:
+    """The scan's straight segments of a length the board can show; splitting and jump limits grow with the range noise."""
+    limit_m = 5.0 * options.range_sigma_m
+    segs = line_segments(
+        ranges_m, angles_rad, options.range_min_m, options.range_max_m, options.window_rad, split_tol_m=max(0.07, limit_m), jump_m=max(0.08, limit_m)
+    )
+    return [s for s in segs if min_len <= s.length_m <= max_len]
 
 
 def calibrate_views(
@@ -215,11 +224,7 @@ def calibrate_views(
             reports[k].reason = "no board found in the image"
             continue
         reports[k].corner_rms_px = boards[k].reprojection_rms_px
-        segs = [
-            s
-            for s in line_segments(ranges_m[k], angles_rad, options.range_min_m, options.range_max_m, options.window_rad, split_tol_m=max(0.07, 5.0 * options.range_sigma_m), jump_m=max(0.08, 5.0 * options.range_sigma_m))
-            if min_len <= s.length_m <= max_len
-        ]
+        segs = _board_sized_segments(ranges_m[k], angles_rad, options, min_len, max_len)
         if not segs:
             reports[k].reason = "no straight laser segment of the board's size in the scan"
             continue
