@@ -42,3 +42,7 @@ class MissingDependencyError(DemGraphError):
 
     def __init__(self, module: str, install_hint: str):
         super().__init__(f"the optional dependency '{module}' is missing: {install_hint}")
+
+
+class CalibrationError(DemGraphError):
+    """A calibration cannot be made from the data given: too few usable views, degenerate geometry."""
