@@ -46,7 +46,8 @@ def test_plotted_lines_are_the_tables_medians_against_live_points(tmp_path):
     # the 25 Hz budget: a horizontal line at exactly 40 ms
     budget = lines["40 ms (25 Hz)"]
     assert FRAME_BUDGET_MS == 40.0 and set(budget.get_ydata()) == {40.0}
-    assert ax.get_xlabel() == "live points per frame (median)" and ax.get_ylabel() == "time per frame (ms)"
+    assert ax.get_xlabel() == "live points per frame (median)" and ax.get_ylabel() == "time per frame (ms, log scale)"
+    assert ax.get_yscale() == "log"
 
 
 def test_p95_band_spans_median_to_p95(tmp_path):
