@@ -130,13 +130,15 @@ def select_match(
             if not inside[i, j] or (i - i_best) ** 2 + (j - j_best) ** 2 <= r2:
                 continue
             s = scores[i, j]
+            if second >= s:
+                continue  # cannot raise the second peak: skip the local-maximum test
             peak = True
             for di in range(-1, 2):
                 for dj in range(-1, 2):
                     ii, jj = i + di, j + dj
                     if 0 <= ii < n_rows and 0 <= jj < n_cols and scores[ii, jj] > s:
                         peak = False
-            if peak and not second >= s:
+            if peak:
                 second = float(s)
     if second == second and best - second < ambiguity_margin:
         return AMBIGUOUS, i_best, j_best, best, second, 0.0, 0.0

@@ -371,8 +371,14 @@ class PatchTracker:
         offsets = np.zeros(n, dtype=np.int64)
         grids = []
         size = 0
+        if len(searched):
+            # the grey levels as float32 once, over the box holding every region
+            lo = box[searched, 4:8].min(axis=0) - ht
+            hi = box[searched, 4:8].max(axis=0) + ht + 1
+            u0, v0 = int(lo[0]), int(lo[2])
+            grey = _to_grey(img[v0 : int(hi[3]), u0 : int(hi[1])]).astype(np.float32)
         for k, (u_lo, u_hi, v_lo, v_hi) in zip(searched.tolist(), box[searched, 4:8].tolist()):
-            roi = _to_grey(img[v_lo - ht : v_hi + ht + 1, u_lo - ht : u_hi + ht + 1]).astype(np.float32)
+            roi = grey[v_lo - ht - v0 : v_hi + ht + 1 - v0, u_lo - ht - u0 : u_hi + ht + 1 - u0]
             grid = cv2.matchTemplate(roi, tpl[k], cv2.TM_CCOEFF_NORMED)  # grid[i, j]: centre (u_lo + j, v_lo + i)
             offsets[k] = size
             size += grid.size
