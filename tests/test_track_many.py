@@ -75,11 +75,11 @@ def _reference_track(tracker: PatchTracker, image, template, uv_pred_px, S_px2=N
     return TrackResult(TrackStatus.OK, np.array([u_lo + j_best + off_u, v_lo + i_best + off_v]), best, second, searched)
 
 
-def _reference_track_many(tracker, image, templates, uv_pred_px, S_px2=None, half_size_px=None) -> TrackBatch:
-    """``track_many`` as a loop over the reference, its results as a :class:`TrackBatch`."""
+def _reference_track_many(tracker, image, templates, uv_pred_px, S_px2=None, half_size_px=None, track=_reference_track) -> TrackBatch:
+    """``track_many`` as a loop over the reference (or another one-point ``track``), its results as a :class:`TrackBatch`."""
     code = {TrackStatus.OK: 0, TrackStatus.LOW_SCORE: 1, TrackStatus.AMBIGUOUS: 2, TrackStatus.OUT_OF_IMAGE: 3, TrackStatus.SEARCH_TOO_LARGE: 4, TrackStatus.LOW_TEXTURE: 5}
     res = [
-        _reference_track(tracker, image, templates[k], uv_pred_px[k], None if S_px2 is None else S_px2[k], half_size_px)
+        track(tracker, image, templates[k], uv_pred_px[k], None if S_px2 is None else S_px2[k], half_size_px)
         for k in range(len(templates))
     ]
     return TrackBatch(
@@ -159,6 +159,9 @@ def test_track_many_equals_the_per_point_reference(seed, warped):
     for config in (TRACKER, PatchTracker(TRACKER.config.model_copy(update=dict(subpixel=False, min_patch_std_dn=0.0)))):
         new = config.track_many(B, tpl, pred, S_px2=S)
         _assert_same(new, _reference_track_many(config, B, tpl, pred, S_px2=S))
+        # the one-point `track` (PTPM's) gives the same
+        _assert_same(new, _reference_track_many(config, B, tpl, pred, S_px2=S, track=PatchTracker.track))
+        _assert_same(config.track_many(B, tpl, pred, half_size_px=20), _reference_track_many(config, B, tpl, pred, half_size_px=20, track=PatchTracker.track))
         for half in (0, 3, 20, 41):
             _assert_same(config.track_many(B, tpl, pred, half_size_px=half), _reference_track_many(config, B, tpl, pred, half_size_px=half))
     # every outcome occurs
@@ -212,7 +215,8 @@ def test_track_many_argument_checks_and_empty_batch():
 @pytest.mark.parametrize("estimator", ["ptpm", "gm", "isam2"])
 def test_recorded_run_is_the_same_with_the_reference_tracker(smoke_log, estimator, monkeypatch):
     """A whole run of `smoke`: every frame's pose and the front end's counters are identical with
-    the batched tracker and with the per-point reference in its place."""
+    the tracker (batched for GM and isam2, one point at a time for PTPM) and with the per-point
+    reference in its place."""
 
     def run():
         config = RunConfig(estimator=estimator)
@@ -223,6 +227,7 @@ def test_recorded_run_is_the_same_with_the_reference_tracker(smoke_log, estimato
 
     T_new, n_new, counters_new = run()
     monkeypatch.setattr(PatchTracker, "track_many", _reference_track_many)
+    monkeypatch.setattr(PatchTracker, "track", _reference_track)
     T_ref, n_ref, counters_ref = run()
     assert len(T_new) == sum(isinstance(e, CameraFrame) for e in smoke_log.events())
     assert n_new == n_ref and counters_new == counters_ref

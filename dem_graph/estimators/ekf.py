@@ -155,7 +155,8 @@ class EkfSlam(FrameDrivenEstimator):
         self.last_prior_search_sizes = [(int(u), int(v)) for u, v in half_prior]
         t_track = time.perf_counter() - t0
         t_update = 0.0
-        # every template at once (they do not depend on the order); then one search per point
+        # every template at once (they do not depend on the order); then one search per point: a
+        # point's region depends on the updates before it
         templates = fe.templates(st.point_ids[order], None if warps is None else warps[order]) if order else None
         st.begin_sequential(len(order))
         n_ok = 0
@@ -165,9 +166,9 @@ class EkfSlam(FrameDrivenEstimator):
                 d_pose, d_point = st.correction(i)
                 uv_i = uv[i] + Hp[i] @ d_pose + Hx[i] @ d_point
                 S = st.sequential_innovation_covariance(i, Hp[i], Hx[i], self._R)
-                res = fe.track_many(image, st.point_ids[i : i + 1], templates[k : k + 1], uv_i[None], S_px2=S[None], t_s=t_s, T_world_cam=T_wc)
-                self.last_search_sizes.append(tuple(res.search_half_size_px[0].tolist()))
-                found, injected = self._false_matches.apply(res.uv_px[0] if res.ok[0] else None, uv_i)
+                res = fe.track(image, int(st.point_ids[i]), None, uv_i, S_px2=S, t_s=t_s, T_world_cam=T_wc, template=templates[k])
+                self.last_search_sizes.append(res.search_half_size_px)
+                found, injected = self._false_matches.apply(res.uv_px if res.ok else None, uv_i)
                 tb = time.perf_counter()
                 t_track += tb - ta
                 if found is None:
