@@ -8,6 +8,10 @@ and from 139 to 75 us with 25 px^2 (median of three runs).
 :func:`select_match` takes the NCC score grid of a search and returns the status code, the best
 candidate, its score, the best other peak and the sub-pixel offset; :mod:`.tracker` turns them into
 a :class:`~dem_graph.frontend.tracker.TrackResult`.
+
+For a whole frame (``PatchTracker.track_many``), :func:`plan_searches` computes every point's gate,
+region and template spread in one call, and :func:`select_matches` runs :func:`select_match` over
+every point's score grid in one call, with the same floating-point operations as the per-point path.
 """
 
 from __future__ import annotations
