@@ -123,21 +123,28 @@ class EkfSlam(FrameDrivenEstimator):
         warps = fe.template_warps(st.point_ids, st.points_xyz, T_wc)
         if self.config.variant == "gm":
             half = self.config.gm_search_half_size_px
-            ok_idx, innov = [], []
-            for i in idx[in_front]:
-                res = fe.track(image, int(st.point_ids[i]), None if warps is None else warps[i], uv[i], half_size_px=half, t_s=t_s, T_world_cam=T_wc)
-                self.last_search_sizes.append(res.search_half_size_px)
-                found, injected = self._false_matches.apply(res.uv_px if res.ok else None, uv[i])
-                if found is None:
-                    continue
-                if injected and not self._false_matches.record(np.max(np.abs(found - uv[i])) <= half):
-                    continue
-                ok_idx.append(i)
-                innov.append(found - uv[i])
+            sel = idx[in_front]
+            ids = st.point_ids[sel]
+            templates = fe.templates(ids, None if warps is None else warps[sel])
+            batch = fe.track_many(image, ids, templates, uv[sel], half_size_px=half, t_s=t_s, T_world_cam=T_wc)
+            self.last_search_sizes = [(u, v) for u, v in batch.search_half_size_px.tolist()]
+            if self._false_matches.enabled:
+                ok_idx, innov = [], []
+                for i, ok, uv_found in zip(sel, batch.ok.tolist(), batch.uv_px):
+                    found, injected = self._false_matches.apply(uv_found if ok else None, uv[i])
+                    if found is None:
+                        continue
+                    if injected and not self._false_matches.record(np.max(np.abs(found - uv[i])) <= half):
+                        continue
+                    ok_idx.append(i)
+                    innov.append(found - uv[i])
+            else:
+                ok_idx = sel[batch.ok]
+                innov = batch.uv_px[batch.ok] - uv[ok_idx]
             t1 = time.perf_counter()
-            if ok_idx:
+            if len(ok_idx):
                 ok = np.array(ok_idx)
-                st.batch_update(ok, np.array(innov), Hp[ok], Hx[ok], self._R)
+                st.batch_update(ok, np.array(innov).reshape(-1, 2), Hp[ok], Hx[ok], self._R)
             return len(ok_idx), t1 - t0, time.perf_counter() - t1
 
         # PTPM: most informative first (largest predicted innovation relative to the pixel noise)
@@ -148,15 +155,18 @@ class EkfSlam(FrameDrivenEstimator):
         self.last_prior_search_sizes = [(int(u), int(v)) for u, v in half_prior]
         t_track = time.perf_counter() - t0
         t_update = 0.0
+        # every template at once (they do not depend on the order); then one search per point: a
+        # point's region depends on the updates before it
+        templates = fe.templates(st.point_ids[order], None if warps is None else warps[order]) if order else None
         st.begin_sequential(len(order))
         n_ok = 0
         try:
-            for i in order:
+            for k, i in enumerate(order):
                 ta = time.perf_counter()
                 d_pose, d_point = st.correction(i)
                 uv_i = uv[i] + Hp[i] @ d_pose + Hx[i] @ d_point
                 S = st.sequential_innovation_covariance(i, Hp[i], Hx[i], self._R)
-                res = fe.track(image, int(st.point_ids[i]), None if warps is None else warps[i], uv_i, S_px2=S, t_s=t_s, T_world_cam=T_wc)
+                res = fe.track(image, int(st.point_ids[i]), None, uv_i, S_px2=S, t_s=t_s, T_world_cam=T_wc, template=templates[k])
                 self.last_search_sizes.append(res.search_half_size_px)
                 found, injected = self._false_matches.apply(res.uv_px if res.ok else None, uv_i)
                 tb = time.perf_counter()

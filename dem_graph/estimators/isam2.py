@@ -330,10 +330,15 @@ class Isam2Slam(FrameDrivenEstimator):
         uv, S, in_front = self.search_regions(T_pred, self._Sigma)
         T_wc = T_pred @ T_body_cam
         warps = fe.template_warps(live.ids, live.X, T_wc)
+        sel = np.flatnonzero(in_front)
+        ids = live.ids[sel]
+        templates = fe.templates(ids, None if warps is None else warps[sel])
+        batch = fe.track_many(image, ids, templates, uv[sel], S_px2=S[sel], t_s=t_s, T_world_cam=T_wc)
+        if not self._false_matches.enabled:
+            return sel[batch.ok], batch.uv_px[batch.ok]
         idx, found_uv = [], []
-        for i in np.flatnonzero(in_front):
-            res = fe.track(image, int(live.ids[i]), None if warps is None else warps[i], uv[i], S_px2=S[i], t_s=t_s, T_world_cam=T_wc)
-            found, injected = self._false_matches.apply(res.uv_px if res.ok else None, uv[i])
+        for i, ok, uv_found in zip(sel, batch.ok.tolist(), batch.uv_px):
+            found, injected = self._false_matches.apply(uv_found if ok else None, uv[i])
             if found is None:
                 continue
             if injected:

@@ -51,6 +51,11 @@ class FalseMatches:
         self.counters = counters
         self._rng = np.random.default_rng(config.seed)
 
+    @property
+    def enabled(self) -> bool:
+        """False when :meth:`apply` returns every match unchanged (and draws nothing)."""
+        return self.config.fraction > 0
+
     def apply(self, uv_found: np.ndarray | None, uv_predicted: np.ndarray) -> tuple[np.ndarray | None, bool]:
         """``(pixel, injected)``: the match, or a wrong one near it (near the prediction if the tracker found nothing)."""
         if self.config.fraction <= 0 or self._rng.random() >= self.config.fraction:

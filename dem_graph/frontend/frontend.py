@@ -22,11 +22,12 @@ from pydantic import Field
 
 from dem_graph.config_types import StrictModel
 from dem_graph.frontend.focus import FocusArea, FocusConfig
-from dem_graph.frontend.tracker import Patch, PatchTracker, TrackerConfig, TrackResult
+from dem_graph.frontend.tracker import Patch, PatchTracker, TrackBatch, TrackerConfig, TrackResult, TrackStatus
 from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.se3 import invert, transform_points
 
 LASER, CAMERA = 0, 1
+_TRACK_COUNTER = {s: f"track_{s.name.lower()}" for s in TrackStatus}
 
 
 class FrontendConfig(StrictModel):
@@ -136,32 +137,59 @@ class FrontEnd:
         radius = tracks[0].patch.region.shape[0] // 2
         return self.tracker.template_warps(centers, radius, H)
 
-    def track(self, image, point_id: int, warp, uv_pred, S_px2=None, half_size_px=None, t_s: float = 0.0, T_world_cam=None) -> TrackResult:
+    def templates(self, point_ids, warps: np.ndarray | None) -> np.ndarray:
+        """(n,t,t) float32: each point's template, its patch warped by its matrix of
+        :meth:`template_warps` (``warps`` None, or a matrix with NaN: the patch unwarped)."""
+        tracker = self.tracker
+        side = 2 * self.config.tracker.patch_half_size_px + 1
+        out = np.empty((len(point_ids), side, side), dtype=np.float32)
+        finite = np.zeros(len(point_ids), dtype=bool) if warps is None else np.isfinite(warps[:, 2, 2])
+        for k, (point_id, warped) in enumerate(zip(np.asarray(point_ids).tolist(), finite.tolist())):
+            patch = self.tracks[point_id].patch
+            out[k] = tracker.warp_template(patch, warps[k]) if warped else tracker.template(patch)
+        return out
+
+    def track(self, image, point_id: int, warp, uv_pred, S_px2=None, half_size_px=None, t_s: float = 0.0, T_world_cam=None, template=None) -> TrackResult:
         """Track one point: its patch warped by ``warp`` (a matrix of :meth:`template_warps`; None or
-        NaN: unwarped), searched around ``uv_pred`` in the chi-square region of ``S_px2`` or the
-        square of ``half_size_px``. With ``refresh_patch_every``, the patch is re-recorded at the
-        match (taken at ``t_s`` from the camera pose estimate ``T_world_cam``)."""
-        track = self.tracks[point_id]
-        if warp is None or not np.isfinite(warp[2, 2]):
-            template = self.tracker.template(track.patch)
-        else:
-            template = self.tracker.warp_template(track.patch, warp)
+        NaN: unwarped), or its ``template`` when given (from :meth:`templates`), searched around
+        ``uv_pred`` in the chi-square region of ``S_px2`` or the square of ``half_size_px``. With
+        ``refresh_patch_every``, the patch is re-recorded at the match (taken at ``t_s`` from the
+        camera pose estimate ``T_world_cam``). For the point-by-point PTPM; :meth:`track_many`
+        tracks a frame's points at once, with the same outcome."""
+        if template is None:
+            patch = self.tracks[point_id].patch
+            template = self.tracker.template(patch) if warp is None or not np.isfinite(warp[2, 2]) else self.tracker.warp_template(patch, warp)
         result = self.tracker.track(image, template, uv_pred, S_px2=S_px2, half_size_px=half_size_px)
-        self.counters[f"track_{result.status.name.lower()}"] += 1
-        if result.ok:
-            track.misses = 0
-            track.n_tracked += 1
-            every = self.config.refresh_patch_every
-            if every and T_world_cam is not None and track.n_tracked % every == 0:
-                patch = self.tracker.make_patch(image, result.uv_px, t_s)
-                if patch is not None:
-                    track.patch = patch
-                    track.T_world_cam_source = np.array(T_world_cam)
-                    track.segment += 1
-                    self.counters["patch_refreshed"] += 1
-        else:
-            track.misses += 1
+        self._record(image, point_id, result.status, result.uv_px, t_s, T_world_cam)
         return result
+
+    def track_many(self, image, point_ids, templates: np.ndarray, uv_pred: np.ndarray, S_px2=None, half_size_px=None, t_s: float = 0.0, T_world_cam=None) -> TrackBatch:
+        """:meth:`track` for ``n`` points at once, with their :meth:`templates` (n,t,t), predictions
+        (n,2) and covariances (n,2,2) (or one ``half_size_px``); the outcome as
+        :meth:`PatchTracker.track_many` gives it. Counters, misses and patch refreshes follow the
+        points' order, as with one :meth:`track` call per point."""
+        batch = self.tracker.track_many(image, templates, uv_pred, S_px2=S_px2, half_size_px=half_size_px)
+        for point_id, status, uv in zip(np.asarray(point_ids).tolist(), batch.statuses(), batch.uv_px):
+            self._record(image, point_id, status, uv, t_s, T_world_cam)
+        return batch
+
+    def _record(self, image, point_id: int, status: TrackStatus, uv, t_s: float, T_world_cam) -> None:
+        """A track's outcome: counters, misses, and the patch refreshed every ``refresh_patch_every`` matches."""
+        track = self.tracks[point_id]
+        self.counters[_TRACK_COUNTER[status]] += 1
+        if status is not TrackStatus.OK:
+            track.misses += 1
+            return
+        track.misses = 0
+        track.n_tracked += 1
+        every = self.config.refresh_patch_every
+        if every and T_world_cam is not None and track.n_tracked % every == 0:
+            patch = self.tracker.make_patch(image, uv, t_s)
+            if patch is not None:
+                track.patch = patch
+                track.T_world_cam_source = np.array(T_world_cam)
+                track.segment += 1
+                self.counters["patch_refreshed"] += 1
 
     # --- new points --------------------------------------------------------------------------
     def focus_area(self, speed_mps: float | None) -> FocusArea:

@@ -8,6 +8,10 @@ and from 139 to 75 us with 25 px^2 (median of three runs).
 :func:`select_match` takes the NCC score grid of a search and returns the status code, the best
 candidate, its score, the best other peak and the sub-pixel offset; :mod:`.tracker` turns them into
 a :class:`~dem_graph.frontend.tracker.TrackResult`.
+
+For a whole frame (``PatchTracker.track_many``), :func:`plan_searches` computes every point's gate,
+region and template spread in one call, and :func:`select_matches` runs :func:`select_match` over
+every point's score grid in one call, with the same floating-point operations as the per-point path.
 """
 
 from __future__ import annotations
@@ -130,13 +134,15 @@ def select_match(
             if not inside[i, j] or (i - i_best) ** 2 + (j - j_best) ** 2 <= r2:
                 continue
             s = scores[i, j]
+            if second >= s:
+                continue  # cannot raise the second peak: skip the local-maximum test
             peak = True
             for di in range(-1, 2):
                 for dj in range(-1, 2):
                     ii, jj = i + di, j + dj
                     if 0 <= ii < n_rows and 0 <= jj < n_cols and scores[ii, jj] > s:
                         peak = False
-            if peak and not second >= s:
+            if peak:
                 second = float(s)
     if second == second and best - second < ambiguity_margin:
         return AMBIGUOUS, i_best, j_best, best, second, 0.0, 0.0
@@ -145,3 +151,125 @@ def select_match(
     if subpixel:
         off_u, off_v = subpixel_offset(scores, i_best, j_best)
     return OK, i_best, j_best, best, second, off_u, off_v
+
+
+# ---------------------------------------------------------------------- a whole frame's points
+
+# status codes of :func:`plan_searches` besides OK, LOW_SCORE and AMBIGUOUS
+OUT_OF_IMAGE, SEARCH_TOO_LARGE, LOW_TEXTURE = 3, 4, 5
+SEARCH = 6  # the point is to be searched (its score grid is computed between the two kernels)
+TEXTURE_BORDERLINE = 7  # the template's spread is within rounding of the minimum: decided by the caller
+BAD_COVARIANCE = 8  # the innovation covariance is not finite positive definite: the caller raises
+
+
+@numba.njit(cache=True, nogil=True)
+def plan_searches(uv_pred: np.ndarray, S: np.ndarray, half_size: int, templates: np.ndarray, params: np.ndarray):
+    """The search of each of ``n`` points, before any correlation: what :meth:`PatchTracker.track`
+    did per point ahead of ``cv2.matchTemplate``, with the same floating-point operations.
+
+    ``uv_pred`` (n,2) predictions; ``S`` (n,2,2) innovation covariances, or (0,2,2) for square
+    regions of ``half_size``; ``templates`` (n,t,t) float32; ``params``: chi-square gate, the
+    largest half size allowed, the minimum template spread, image width and height.
+
+    Returns ``status`` (n,) int8 (SEARCH for the points still to be searched), ``box`` (n,8)
+    int64: half sizes (u, v), the nearest pixel (u, v) and the candidate centres' bounds u_lo,
+    u_hi, v_lo, v_hi (inclusive), and ``ellipse`` (n,3): the inverse covariance (a, b, c) of the
+    gate (1, 0, 1 for a square).
+    """
+    gamma, max_half, min_std = params[0], params[1], params[2]
+    width, height = int(params[3]), int(params[4])
+    n = uv_pred.shape[0]
+    use_ellipse = S.shape[0] == n and n > 0
+    ht = templates.shape[1] // 2
+    n_px = templates.shape[1] * templates.shape[2]
+    # a spread this close to the minimum may compare differently from cv2.meanStdDev's
+    std_tol = 1e-9 * max(1.0, min_std)
+    status = np.full(n, SEARCH, dtype=np.int8)
+    box = np.zeros((n, 8), dtype=np.int64)
+    ellipse = np.zeros((n, 3))
+    for k in range(n):
+        if use_ellipse:
+            s_uu, s_vv = S[k, 0, 0], S[k, 1, 1]
+            s_uv = 0.5 * (S[k, 0, 1] + S[k, 1, 0])
+            det = s_uu * s_vv - s_uv * s_uv
+            if not (0 < s_uu < math.inf and 0 < s_vv < math.inf and det > 0):
+                status[k] = BAD_COVARIANCE
+                continue
+            half_u_f = max(1.0, math.ceil(math.sqrt(gamma * s_uu)))
+            half_v_f = max(1.0, math.ceil(math.sqrt(gamma * s_vv)))
+            ellipse[k, 0], ellipse[k, 1], ellipse[k, 2] = s_vv / det, -s_uv / det, s_uu / det
+        else:
+            half_u_f = half_v_f = float(half_size)
+            ellipse[k, 0], ellipse[k, 1], ellipse[k, 2] = 1.0, 0.0, 1.0
+        if half_u_f > max_half or half_v_f > max_half:
+            status[k] = SEARCH_TOO_LARGE
+            continue
+        u_pred, v_pred = uv_pred[k, 0], uv_pred[k, 1]
+        if not (math.isfinite(u_pred) and math.isfinite(v_pred)):
+            status[k] = OUT_OF_IMAGE
+            continue
+        cu_f, cv_f = math.floor(u_pred + 0.5), math.floor(v_pred + 0.5)
+        if cu_f - ht < 0 or cv_f - ht < 0 or cu_f + ht > width - 1 or cv_f + ht > height - 1:
+            status[k] = OUT_OF_IMAGE
+            continue
+        total = 0.0
+        total_sq = 0.0
+        for a in range(templates.shape[1]):
+            for b in range(templates.shape[2]):
+                x = np.float64(templates[k, a, b])  # float() would stay float32 in numba
+                total += x
+                total_sq += x * x
+        mean = total / n_px
+        std = math.sqrt(max(total_sq / n_px - mean * mean, 0.0))
+        if abs(std - min_std) <= std_tol:
+            status[k] = TEXTURE_BORDERLINE
+        elif std < min_std:
+            status[k] = LOW_TEXTURE
+            continue
+        half_u, half_v, cu, cv = int(half_u_f), int(half_v_f), int(cu_f), int(cv_f)
+        box[k, 0], box[k, 1], box[k, 2], box[k, 3] = half_u, half_v, cu, cv
+        box[k, 4], box[k, 5] = max(cu - half_u - 1, ht), min(cu + half_u + 1, width - 1 - ht)
+        box[k, 6], box[k, 7] = max(cv - half_v - 1, ht), min(cv + half_v + 1, height - 1 - ht)
+    return status, box, ellipse
+
+
+@numba.njit(cache=True, nogil=True)
+def select_matches(
+    status: np.ndarray, box: np.ndarray, ellipse: np.ndarray, uv_pred: np.ndarray, scores: np.ndarray, offsets: np.ndarray, gamma: float, params: np.ndarray
+):
+    """:func:`select_match` for every point whose status is SEARCH; its score grid (rows ``v_lo..v_hi``,
+    columns ``u_lo..u_hi`` of ``box``) is ``scores[offsets[k]:]``, row-major. ``params``: use the
+    ellipse (1.0) or the square, min score, exclusion radius, ambiguity margin, sub-pixel (1.0).
+
+    Returns the final ``status`` (n,) int8, the matches ``uv`` (n,2) (NaN unless OK), ``score`` and
+    ``second`` (n,) (NaN when not computed)."""
+    n = status.shape[0]
+    use_ellipse = params[0] != 0.0
+    min_score, exclusion, margin, subpixel = params[1], params[2], params[3], params[4] != 0.0
+    out_status = status.copy()
+    uv = np.full((n, 2), np.nan)
+    score = np.full(n, np.nan)
+    second = np.full(n, np.nan)
+    for k in range(n):
+        if status[k] != SEARCH:
+            continue
+        half_u, half_v, cu, cv = box[k, 0], box[k, 1], box[k, 2], box[k, 3]
+        u_lo, u_hi, v_lo, v_hi = box[k, 4], box[k, 5], box[k, 6], box[k, 7]
+        n_rows, n_cols = v_hi - v_lo + 1, u_hi - u_lo + 1
+        grid = scores[offsets[k] : offsets[k] + n_rows * n_cols].reshape((n_rows, n_cols))
+        # the region inside the computed grid: rows i0:i1, columns j0:j1
+        i0, i1 = max(cv - half_v, v_lo) - v_lo, min(cv + half_v, v_hi) - v_lo + 1
+        j0, j1 = max(cu - half_u, u_lo) - u_lo, min(cu + half_u, u_hi) - u_lo + 1
+        s, i_best, j_best, best, sec, off_u, off_v = select_match(
+            grid, i0, i1, j0, j1, use_ellipse, ellipse[k, 0], ellipse[k, 1], ellipse[k, 2], gamma,
+            v_lo + i0 - uv_pred[k, 1], u_lo + j0 - uv_pred[k, 0], cv - v_lo, cu - u_lo, min_score, exclusion, margin, subpixel,
+        )  # fmt: skip
+        out_status[k] = s
+        score[k] = best
+        if s == LOW_SCORE:
+            continue
+        second[k] = sec
+        if s == OK:
+            uv[k, 0] = u_lo + j_best + off_u
+            uv[k, 1] = v_lo + i_best + off_v
+    return out_status, uv, score, second
