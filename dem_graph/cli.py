@@ -142,6 +142,7 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, out_dir, confi
     )
     result = run_estimator(sequence, config)
     result.metrics["dataset"] = str(Path(dataset).resolve())
+    result.metrics["dataset_options"] = sequence.open_options()
     paths = write_run(result, out_dir)
     for line in summary_lines(result):
         click.echo(line)
@@ -170,17 +171,20 @@ def dem(run_dir, dataset, at_s, resolution_m, out_dir) -> None:
     if not run_dir.is_dir():
         raise DatasetError(run_dir, "run folder not found")
     config = run_folder_config(run_dir)
+    metrics_path = run_dir / "metrics.json"
+    try:
+        recorded = json.loads(metrics_path.read_text())
+    except (OSError, ValueError):
+        recorded = {}
     if dataset is None:
-        metrics_path = run_dir / "metrics.json"
-        try:
-            dataset = json.loads(metrics_path.read_text()).get("dataset")
-        except (OSError, ValueError):
-            dataset = None
+        dataset = recorded.get("dataset")
         if not dataset:
             raise DatasetError(metrics_path, "names no dataset: give --dataset")
     if resolution_m is not None:
         config.dem.fusion.resolution_m = resolution_m
-    sequence = _open_dataset(Path(dataset))
+    from dem_graph.datasets.open import reopen_dataset
+
+    sequence = reopen_dataset(Path(dataset), recorded.get("dataset_options"))  # the run's KITTI ring, ...
     result = run_folder_dem(run_dir, sequence, at_s, config.dem, config.frontend.focus)
     out_dir = out_dir or (run_dir if at_s is None else run_dir / f"dem_at_{at_s:g}")
     paths = result.write(out_dir)

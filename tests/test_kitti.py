@@ -275,6 +275,14 @@ def test_cli_runs_on_a_kitti_folder_and_names_a_missing_topic(tmp_path):
     assert result.exit_code == 0, result.output
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["frames"] == 3 and "trajectory" in metrics
+    assert metrics["dataset_options"] == {"format": "kitti-odometry", "ring": 40, "sequence": "07"}
+    # the DEM made again from the run folder reads ring 40 again, not the default ring
+    made = np.load(out / "dem.npz")["layer_elevation"]
+    (out / "dem.npz").unlink()
+    result = CliRunner().invoke(main, ["--no-progress", "dem", str(out)])
+    assert result.exit_code == 0, result.output
+    np.testing.assert_array_equal(np.load(out / "dem.npz")["layer_elevation"], made)
+    assert open_kitti(root).ring != 40  # (the default ring would have given another DEM)
     bag = tmp_path / "x.bag"
     bag.write_bytes(b"")
     result = CliRunner().invoke(main, ["--no-progress", "run", str(bag), "--estimator", "ptpm", "--out", str(tmp_path / "r2")])

@@ -59,6 +59,12 @@ class Sequence(abc.ABC):
     def ground_truth(self) -> GroundTruth | None:
         return None
 
+    def open_options(self) -> dict:
+        """How to open this dataset again beyond its path (``format`` and the fields of
+        :class:`~dem_graph.datasets.open.DatasetOptions` it used, plain values), recorded in a run's
+        ``metrics.json`` so that ``dem-graph dem`` and ``evaluate`` read the same data. None by default."""
+        return {}
+
     def run_settings(self) -> dict:
         """Run-configuration values this kind of log needs (a nested mapping as in ``config.yaml``),
         applied over the defaults and under the user's own configuration file. None by default."""

@@ -192,6 +192,16 @@ KITTI_SETTINGS = Path(__file__).with_name("settings") / "kitti.yaml"
 class _KittiSequence(Sequence):
     """Camera frames and one Velodyne ring (and odometry, when the log has it) merged in time order."""
 
+    layout = "kitti"  # the format name :func:`dem_graph.datasets.open.open_dataset` knows it by
+
+    def open_options(self) -> dict:
+        """The layout and the ring (and the odometry layout's sequence): a run made with ``--ring N``
+        must be read again with ring N."""
+        options = {"format": self.layout, "ring": int(self.ring)}
+        if self.layout == "kitti-odometry":
+            options["sequence"] = self.path.name
+        return options
+
     def run_settings(self) -> dict:
         """KITTI's run settings (``datasets/settings/kitti.yaml``): a car at 10-14 m/s and 10 Hz. With
         the package's defaults, made for a small robot at 25 Hz, no point is ever tracked."""
@@ -371,6 +381,7 @@ class _KittiSequence(Sequence):
 
 
 class KittiOdometrySequence(_KittiSequence):
+    layout = "kitti-odometry"
     """A sequence of the KITTI odometry benchmark (``ROOT/sequences/NN``, ``ROOT/poses/NN.txt``).
 
     ``ring``: the Velodyne ring used as the line laser (0 highest .. 63); default the one whose
@@ -493,6 +504,7 @@ def _find_calib(drive: Path, name: str) -> Path:
 
 
 class KittiRawSequence(_KittiSequence):
+    layout = "kitti-raw"
     """A synced drive of the KITTI raw data (``DATE/DATE_drive_XXXX_sync``), calibration files in
     the drive folder or its parent. Ground truth and odometry from OXTS. Options as
     :class:`KittiOdometrySequence`'s."""

@@ -71,4 +71,12 @@ def open_dataset(path: str | Path, format: str | None = None, options: DatasetOp
     raise DatasetError(path, f"unknown dataset format {fmt!r}: choose from {', '.join(FORMATS)}")
 
 
-__all__ = ["FORMATS", "DatasetOptions", "detect_format", "open_dataset"]
+def reopen_dataset(path: str | Path, recorded: dict | None) -> Sequence:
+    """The dataset at ``path`` opened as a run recorded it (:meth:`Sequence.open_options`, in the run's
+    ``metrics.json``): its options (a KITTI ring, ...) applied, the format told from the path."""
+    fields = DatasetOptions.__dataclass_fields__
+    options = {k: v for k, v in (recorded or {}).items() if k in fields and v is not None}
+    return open_dataset(path, None, DatasetOptions(**options))
+
+
+__all__ = ["FORMATS", "DatasetOptions", "detect_format", "open_dataset", "reopen_dataset"]

@@ -126,6 +126,7 @@ def _run_one(sequence: Sequence, config: RunConfig, name: str, run_dir: Path, da
     try:
         result = run_estimator(sequence, cfg)
         result.metrics["dataset"] = dataset
+        result.metrics["dataset_options"] = sequence.open_options()
         write_run(result, run_dir)
     except DemGraphError as exc:
         log.error("%s failed: %s", name, exc)

@@ -111,12 +111,13 @@ def _trajectory_accuracy(path: Path, truth: GroundTruth) -> dict:
         raise DatasetError(path, f"cannot be compared with the ground truth: {exc}") from None
 
 
-def open_sequence(sequence: Sequence | str | Path) -> Sequence:
-    """``sequence`` itself, or the dataset at that path (a dataset folder, or KITTI with its default options)."""
+def open_sequence(sequence: Sequence | str | Path, recorded_options: dict | None = None) -> Sequence:
+    """``sequence`` itself, or the dataset at that path (a dataset folder, KITTI, ...) opened with the
+    options a run recorded (:func:`~dem_graph.datasets.open.reopen_dataset`; None: the defaults)."""
     if isinstance(sequence, (str, Path)):
-        from dem_graph.datasets.open import open_dataset
+        from dem_graph.datasets.open import reopen_dataset
 
-        return open_dataset(sequence)
+        return reopen_dataset(sequence, recorded_options)
     return sequence
 
 
@@ -134,9 +135,9 @@ def evaluate_run(run_dir: str | Path, sequence: Sequence | str | Path, with_dem:
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise DatasetError(run_dir, "run folder not found" if not run_dir.exists() else "not a folder")
-    sequence = open_sequence(sequence)
-    truth = require_ground_truth(sequence)
     own = read_run_metrics(run_dir)
+    sequence = open_sequence(sequence, own.get("dataset_options"))  # a KITTI run's ring, ...
+    truth = require_ground_truth(sequence)
     metrics = {k: own[k] for k in _CARRIED if k in own}
     metrics["trajectory"] = _trajectory_accuracy(run_dir / TRAJECTORY_TUM, truth)
     for extra in sorted(run_dir.glob("trajectory_*.tum")):
