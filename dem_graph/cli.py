@@ -161,29 +161,24 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, out_dir, confi
 @_friendly_errors
 def dem(run_dir, dataset, at_s, resolution_m, out_dir) -> None:
     """Make a run's DEM again from its poses (global, or the local map at a time)."""
-    import json
-
+    from dem_graph.datasets.open import reopen_dataset
     from dem_graph.dem.pipeline import run_folder_dem
     from dem_graph.errors import DatasetError
+    from dem_graph.evaluation.evaluate import METRICS_JSON, read_run_metrics
     from dem_graph.run import run_folder_config
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise DatasetError(run_dir, "run folder not found")
     config = run_folder_config(run_dir)
-    metrics_path = run_dir / "metrics.json"
-    try:
-        recorded = json.loads(metrics_path.read_text())
-    except (OSError, ValueError):
-        recorded = {}
+    metrics_path = run_dir / METRICS_JSON
+    recorded = read_run_metrics(run_dir)
     if dataset is None:
         dataset = recorded.get("dataset")
         if not dataset:
             raise DatasetError(metrics_path, "names no dataset: give --dataset")
     if resolution_m is not None:
         config.dem.fusion.resolution_m = resolution_m
-    from dem_graph.datasets.open import reopen_dataset
-
     sequence = reopen_dataset(Path(dataset), recorded.get("dataset_options"))  # the run's KITTI ring, ...
     result = run_folder_dem(run_dir, sequence, at_s, config.dem, config.frontend.focus)
     out_dir = out_dir or (run_dir if at_s is None else run_dir / f"dem_at_{at_s:g}")
@@ -318,7 +313,6 @@ def bench_sim(scenario_name, n_frames, skip_full) -> None:
     click.echo(run(scenario_name, n_frames=n_frames, full=not skip_full).table())
 
 
-
 def _angle_window(text: str | None):
     if text is None:
         return None
@@ -358,8 +352,7 @@ def calibrate(recording, rig_path, out_dir, layout, window_deg, max_dt_s, range_
     result = calibrate_recording(data, options)
     paths = write_calibration(result, data, rig, out_dir, max_dt_s)
     used = sum(v.used for v in result.views)
-    np.set_printoptions(precision=4, suppress=True)
-    click.echo(f"T_cam_laser from {used} of {len(result.views)} views:\n{result.T_cam_laser}")
+    click.echo(f"T_cam_laser from {used} of {len(result.views)} views:\n{np.array2string(result.T_cam_laser, precision=4, suppress_small=True)}")
     click.echo(f"sigma rot (deg): {np.round(result.sigma_rot_deg, 3).tolist()}, sigma trans (mm): {np.round(result.sigma_trans_mm, 1).tolist()}")
     report = result.to_dict()
     if report["jackknife"] is not None:

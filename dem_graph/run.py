@@ -101,7 +101,7 @@ def with_dataset_speed(sequence: Sequence, config: RunConfig) -> RunConfig:
     when ``motion.initial_speed_from_dataset`` asks for it and the dataset has one."""
     if not config.motion.initial_speed_from_dataset or config.motion.uses_odometry(sequence.has_odometry):
         return config
-    speed = getattr(sequence, "initial_speed_mps", None)
+    speed = sequence.initial_speed_mps
     if speed is None:
         log.warning("the dataset gives no starting speed: starting at %.2f m/s (motion.initial_speed_mps)", config.motion.initial_speed_mps)
         return config

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from dem_graph.geometry.se3 import make_pose
+
 
 @dataclass(frozen=True)
 class BoardSpec:
@@ -88,7 +90,5 @@ def board_from_corners(corners_px: np.ndarray, board: BoardSpec, K: np.ndarray, 
         G[:, k] = (_plane(*np.split(x0 + step, 2)) - _plane(*np.split(x0 - step, 2))) / 2e-6
     plane = _plane(rvec, tvec)
     sign = 1.0 if plane[3] >= 0 else -1.0
-    R = cv2.Rodrigues(rvec)[0]
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, tvec.ravel()
+    T = make_pose(cv2.Rodrigues(rvec)[0], tvec.ravel())
     return BoardObservation(corners_px, T, sign * plane[:3], float(sign * plane[3]), G @ pose_cov @ G.T, rms, float(sigma_px))

@@ -239,13 +239,14 @@ def calibrate_views(
         raise CalibrationError("no consistent initial estimate: the laser segments and boards do not agree; give --window-deg around the board")
     solution: Solution | None = None
     selected: dict[int, np.ndarray] = {}
+    points = {k: points_from_ranges(ranges_m[k], angles_rad) for k in obs}  # each scan's returns, laser frame
     for _ in range(2):
         selected = {}
         for k, o in obs.items():
-            mask = _returns_on_board(T, o, points_from_ranges(ranges_m[k], angles_rad), board, tol_m, options.board_margin_m)
+            mask = _returns_on_board(T, o, points[k], board, tol_m, options.board_margin_m)
             if mask.sum() >= 5:
                 selected[k] = np.flatnonzero(mask)
-        views = [_view(obs[k], points_from_ranges(ranges_m[k, idx], angles_rad[idx])) for k, idx in selected.items()]
+        views = [_view(obs[k], points[k][idx]) for k, idx in selected.items()]
         check_geometry(views, options.min_views, options.min_normal_spread)
         if solution is None:
             T_closed_form = closed_form(views)  # reported; the refinement starts from the hypothesis

@@ -59,6 +59,12 @@ class Sequence(abc.ABC):
     def ground_truth(self) -> GroundTruth | None:
         return None
 
+    @property
+    def initial_speed_mps(self) -> float | None:
+        """The log's own estimate of its starting speed (m/s), for a run without odometry that asks for
+        it (``motion.initial_speed_from_dataset``); None when the dataset has none."""
+        return None
+
     def open_options(self) -> dict:
         """How to open this dataset again beyond its path (``format`` and the fields of
         :class:`~dem_graph.datasets.open.DatasetOptions` it used, plain values), recorded in a run's

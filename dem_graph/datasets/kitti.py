@@ -50,6 +50,7 @@ all 64 rings of every scan placed with the ground-truth poses
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from collections.abc import Iterator
@@ -65,6 +66,7 @@ from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.datasets.velodyne import (
     RingLaser,
     RingSplitError,
+    azimuth_deg,
     choose_ring,
     elevation_deg,
     read_velodyne_bin,
@@ -197,10 +199,7 @@ class _KittiSequence(Sequence):
     def open_options(self) -> dict:
         """The layout and the ring (and the odometry layout's sequence): a run made with ``--ring N``
         must be read again with ring N."""
-        options = {"format": self.layout, "ring": int(self.ring)}
-        if self.layout == "kitti-odometry":
-            options["sequence"] = self.path.name
-        return options
+        return {"format": self.layout, "ring": int(self.ring)}
 
     def run_settings(self) -> dict:
         """KITTI's run settings (``datasets/settings/kitti.yaml``): a car at 10-14 m/s and 10 Hz. With
@@ -249,6 +248,7 @@ class _KittiSequence(Sequence):
             odometry=OdometrySpec(rate_hz=rate) if odometry else None,
         )
         self._elevation: ElevationGrid | None = None
+        self._ranges_cache: dict[int, np.ndarray] = {}  # scan index -> the ring's ranges
         self._order = merged_order([o.t_s for o in odometry], scan_t_s, frame_t_s)  # _ODOMETRY, _LASER, _CAMERA
 
     def _make_ring_laser(self, ring: int | None, ground_distance_m: float, half_fov_deg: float, step_deg: float):
@@ -265,7 +265,7 @@ class _KittiSequence(Sequence):
         if not 0 <= ring < 64:
             raise DatasetError(first, f"ring {ring} does not exist: the Velodyne has rings 0 (highest) to 63")
         el_all = ring_elevations_deg(points, ring_of)
-        az = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+        az = azimuth_deg(points)
         in_view = (ring_of == ring) & (np.abs(az) <= half_fov_deg)
         if in_view.sum() < 10:
             raise DatasetError(first, f"ring {ring} has no returns in the camera's field of view")
@@ -273,21 +273,20 @@ class _KittiSequence(Sequence):
         log.info("KITTI: ring %d (elevation %.2f deg, split by %s), %.1f deg either side", ring, el, how, half_fov_deg)
         return RingLaser(ring, el, half_fov_deg, step_deg), el_all, how
 
-    @property
+    @functools.cached_property
     def initial_speed_mps(self) -> float | None:
         """The speed over the first two Velodyne scans, from registering them (point-to-plane ICP on
         all 64 rings): the log's own estimate of the starting speed, for a run without odometry
         (``motion.initial_speed_from_dataset``). None when it cannot be had. Computed once."""
-        if not hasattr(self, "_initial_speed_mps"):
-            self._initial_speed_mps = None
-            if len(self._scan_files) > 1 and self._scan_t_s[1] > self._scan_t_s[0]:
-                T_first_second, pairs = register_scans(read_velodyne_bin(self._scan_files[1]), read_velodyne_bin(self._scan_files[0]))
-                if pairs >= 500:
-                    self._initial_speed_mps = float(np.linalg.norm(T_first_second[:3, 3]) / (self._scan_t_s[1] - self._scan_t_s[0]))
-                    log.info("KITTI: starting speed %.2f m/s from the first two scans (%d point pairs)", self._initial_speed_mps, pairs)
-                else:
-                    log.warning("KITTI: the first two scans do not register (%d point pairs): no starting speed from them", pairs)
-        return self._initial_speed_mps
+        if len(self._scan_files) < 2 or not self._scan_t_s[1] > self._scan_t_s[0]:
+            return None
+        T_first_second, pairs = register_scans(read_velodyne_bin(self._scan_files[1]), read_velodyne_bin(self._scan_files[0]))
+        if pairs < 500:
+            log.warning("KITTI: the first two scans do not register (%d point pairs): no starting speed from them", pairs)
+            return None
+        speed = float(np.linalg.norm(T_first_second[:3, 3]) / (self._scan_t_s[1] - self._scan_t_s[0]))
+        log.info("KITTI: starting speed %.2f m/s from the first two scans (%d point pairs)", speed, pairs)
+        return speed
 
     @property
     def ring(self) -> int:
@@ -330,8 +329,11 @@ class _KittiSequence(Sequence):
         return points, ring_of
 
     def _scan_ranges(self, i: int) -> np.ndarray:
-        points, ring_of = self.read_scan(i)
-        return self._ring_laser.ranges_m(points, ring_of)
+        """Scan ``i``'s ring as ranges, read and split once (the run and the DEM after it both ask)."""
+        if i not in self._ranges_cache:
+            points, ring_of = self.read_scan(i)
+            self._ranges_cache[i] = self._ring_laser.ranges_m(points, ring_of)
+        return self._ranges_cache[i].copy()
 
     def laser_scans(self) -> tuple[np.ndarray, np.ndarray]:
         ranges = [self._scan_ranges(i) for i in range(len(self._scan_files))]
@@ -363,11 +365,12 @@ class _KittiSequence(Sequence):
             raise DatasetError(Path(self.name), "no ground-truth trajectory: no reference surface")
         clouds = []
         inside = (self._scan_t_s >= truth.t_s[0]) & (self._scan_t_s <= truth.t_s[-1])
-        for i in progress(np.flatnonzero(inside), total=int(inside.sum()), desc="reference ground", unit="scan"):
+        scans = np.flatnonzero(inside)
+        T_world_lidar = truth.at(self._scan_t_s[scans]) @ self.T_body_lidar
+        for i, T in progress(zip(scans, T_world_lidar), total=len(scans), desc="reference ground", unit="scan"):
             points = read_velodyne_bin(self._scan_files[i])[:, :3]
             points = points[np.linalg.norm(points, axis=1) <= max_range_m]
-            T_world_lidar = truth.at(np.array([self._scan_t_s[i]]))[0] @ self.T_body_lidar
-            clouds.append(scan_in_world(points, T_world_lidar))
+            clouds.append(scan_in_world(points, T))
         xy = truth.positions_xyz[:, :2]
         lo, hi = xy.min(axis=0) - margin_m, xy.max(axis=0) + margin_m
         try:
@@ -381,12 +384,16 @@ class _KittiSequence(Sequence):
 
 
 class KittiOdometrySequence(_KittiSequence):
-    layout = "kitti-odometry"
     """A sequence of the KITTI odometry benchmark (``ROOT/sequences/NN``, ``ROOT/poses/NN.txt``).
 
     ``ring``: the Velodyne ring used as the line laser (0 highest .. 63); default the one whose
     returns ahead lie nearest ``ground_distance_m``. ``azimuth_step_deg``: its beams' spacing.
     """
+
+    layout = "kitti-odometry"
+
+    def open_options(self) -> dict:
+        return {**super().open_options(), "sequence": self.path.name}
 
     def __init__(self, root: str | Path, sequence: str | int | None = None, ring: int | None = None, ground_distance_m: float = 10.0, azimuth_step_deg: float = 0.25, lidar_height_m: float = LIDAR_HEIGHT_M):
         root = Path(root)
@@ -504,10 +511,11 @@ def _find_calib(drive: Path, name: str) -> Path:
 
 
 class KittiRawSequence(_KittiSequence):
-    layout = "kitti-raw"
     """A synced drive of the KITTI raw data (``DATE/DATE_drive_XXXX_sync``), calibration files in
     the drive folder or its parent. Ground truth and odometry from OXTS. Options as
     :class:`KittiOdometrySequence`'s."""
+
+    layout = "kitti-raw"
 
     def __init__(self, drive: str | Path, ring: int | None = None, ground_distance_m: float = 10.0, azimuth_step_deg: float = 0.25, lidar_height_m: float = LIDAR_HEIGHT_M, odometry_spec: OdometrySpec | None = None):
         drive = Path(drive)
@@ -563,7 +571,6 @@ class KittiRawSequence(_KittiSequence):
         if not images:
             raise DatasetError(drive / "image_00", "no image after the first OXTS record")
         first = _read_image(images[0])
-        self.oxts_records = oxts
         super().__init__(
             f"kitti-raw-{drive.name}", t["image"][keep_img], images, t["velodyne"][keep_scan], scans, T_cam_lidar, P_rect,
             (first.shape[1], first.shape[0]), truth, odometry, ring, ground_distance_m, azimuth_step_deg, lidar_height_m,

@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dem_graph.datasets.base import Sequence
+from dem_graph.datasets.base import Sequence, merged_order
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.errors import DatasetError, MissingDependencyError
 from dem_graph.geometry.rig import OdometrySpec, PlanarBeams, SensorRig
@@ -308,24 +308,17 @@ class RosbagSequence(Sequence):
 
     def events(self) -> Iterator[Event]:
         """Odometry, scans and images merged by time (odometry, then laser, then camera at equal times)."""
-        others = sorted(
-            [(o.t_s, 0, i) for i, o in enumerate(self._odometry)] + [(float(t), 1, i) for i, t in enumerate(self._scan_t_s)]
-        )
-        k = 0
-
-        def flush(until: float) -> Iterator[Event]:
-            nonlocal k
-            while k < len(others) and others[k][0] <= until:
-                _, kind, i = others[k]
-                k += 1
-                yield self._odometry[i] if kind == 0 else LaserScan(float(self._scan_t_s[i]), self._scan_ranges[i].copy(), i)
-
         AnyReader = _anyreader()
         with AnyReader([self.path]) as reader:
-            for index, (t, image) in enumerate(self._iter_images(reader)):
-                yield from flush(t)
-                yield CameraFrame(t, image, index)
-        yield from flush(np.inf)
+            images = self._iter_images(reader)  # in the order of _frame_t_s
+            for kind, i in merged_order([o.t_s for o in self._odometry], self._scan_t_s, self._frame_t_s):
+                if kind == 0:
+                    yield self._odometry[i]
+                elif kind == 1:
+                    yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges[i].copy(), i)
+                else:
+                    t, image = next(images)
+                    yield CameraFrame(t, image, i)
 
     def __repr__(self) -> str:
         return f"RosbagSequence({str(self.path)!r}, frames={len(self._frame_t_s)}, scans={len(self._scan_t_s)}, odometry={len(self._odometry)})"

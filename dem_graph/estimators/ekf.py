@@ -166,7 +166,7 @@ class EkfSlam(FrameDrivenEstimator):
                 d_pose, d_point = st.correction(i)
                 uv_i = uv[i] + Hp[i] @ d_pose + Hx[i] @ d_point
                 S = st.sequential_innovation_covariance(i, Hp[i], Hx[i], self._R)
-                res = fe.track(image, int(st.point_ids[i]), None, uv_i, S_px2=S, t_s=t_s, T_world_cam=T_wc, template=templates[k])
+                res = fe.track(image, int(st.point_ids[i]), templates[k], uv_i, S_px2=S, t_s=t_s, T_world_cam=T_wc)
                 self.last_search_sizes.append(res.search_half_size_px)
                 found, injected = self._false_matches.apply(res.uv_px if res.ok else None, uv_i)
                 tb = time.perf_counter()

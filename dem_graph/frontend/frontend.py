@@ -149,16 +149,12 @@ class FrontEnd:
             out[k] = tracker.warp_template(patch, warps[k]) if warped else tracker.template(patch)
         return out
 
-    def track(self, image, point_id: int, warp, uv_pred, S_px2=None, half_size_px=None, t_s: float = 0.0, T_world_cam=None, template=None) -> TrackResult:
-        """Track one point: its patch warped by ``warp`` (a matrix of :meth:`template_warps`; None or
-        NaN: unwarped), or its ``template`` when given (from :meth:`templates`), searched around
+    def track(self, image, point_id: int, template: np.ndarray, uv_pred, S_px2=None, half_size_px=None, t_s: float = 0.0, T_world_cam=None) -> TrackResult:
+        """Track one point with its ``template`` (one of :meth:`templates`), searched around
         ``uv_pred`` in the chi-square region of ``S_px2`` or the square of ``half_size_px``. With
         ``refresh_patch_every``, the patch is re-recorded at the match (taken at ``t_s`` from the
         camera pose estimate ``T_world_cam``). For the point-by-point PTPM; :meth:`track_many`
         tracks a frame's points at once, with the same outcome."""
-        if template is None:
-            patch = self.tracks[point_id].patch
-            template = self.tracker.template(patch) if warp is None or not np.isfinite(warp[2, 2]) else self.tracker.warp_template(patch, warp)
         result = self.tracker.track(image, template, uv_pred, S_px2=S_px2, half_size_px=half_size_px)
         self._record(image, point_id, result.status, result.uv_px, t_s, T_world_cam)
         return result

@@ -154,12 +154,6 @@ class TrackBatch:
     def statuses(self) -> list[TrackStatus]:
         return [_STATUS_OF_CODE[c] for c in self.status.tolist()]
 
-    def result(self, k: int) -> TrackResult:
-        """Point ``k``'s outcome as a :class:`TrackResult`."""
-        status = _STATUS_OF_CODE[int(self.status[k])]
-        uv = self.uv_px[k].copy() if status is TrackStatus.OK else None
-        half_u, half_v = self.search_half_size_px[k].tolist()
-        return TrackResult(status, uv, float(self.score[k]), float(self.second_score[k]), (half_u, half_v))
 
 
 def _grey_image(image: np.ndarray) -> np.ndarray:
