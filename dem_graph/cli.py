@@ -121,7 +121,7 @@ def _pop_dataset_options(kwargs: dict) -> dict:
     help="gm, ptpm: the paper's EKF variants; isam2: the online graph (fixed-lag smoothing); isam2-batch: the online pass, then the whole log smoothed. [default: the config file's, else ptpm]",
 )
 @click.option("--lag", "lag_s", type=float, default=None, help="isam2: fixed lag of the smoother, seconds.")
-@click.option("--keyframe-every", type=int, default=None, help="isam2: a keyframe every this many frames (1: every frame).")
+@click.option("--keyframe-every", type=int, default=None, help="isam2: a keyframe every this many frames (1: every frame); isam2-batch: the same for its online pass [default: 1 for isam2, 5 for isam2-batch].")
 @click.option("--graph-process", is_flag=True, help="isam2: run the graph in a second process, on another core (faster frames; results depend on the timing).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Run folder to write.")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="YAML run configuration (see config.yaml of a run).")
@@ -372,15 +372,22 @@ def calibrate(recording, rig_path, out_dir, layout, window_deg, max_dt_s, range_
 @click.option("--views", "n_views", type=int, default=15, show_default=True, help="Board poses.")
 @click.option("--corner-sigma-px", type=float, default=0.3, show_default=True, help="Corner noise of the truth file's corners (the images carry their own).")
 @click.option("--range-sigma-m", type=float, default=0.02, show_default=True, help="Range noise, metres.")
+@click.option(
+    "--poses",
+    type=click.Choice(["random", "guided"]),
+    default="random",
+    show_default=True,
+    help="How the board is held: random tilts (many nearly upright), or as docs/calibration.md advises (tilted 34-57 deg forward or back).",
+)
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Recording folder to write (RADLOCC layout, with truth.yaml).")
 @_friendly_errors
-def simulate_calibration_command(seed, n_views, corner_sigma_px, range_sigma_m, out_dir) -> None:
+def simulate_calibration_command(seed, n_views, corner_sigma_px, range_sigma_m, poses, out_dir) -> None:
     """Write a synthetic calibration recording with known T_cam_laser."""
     from dem_graph.calibration.simulate import simulate_calibration, write_recording
 
     if n_views < 1:
         raise click.BadParameter("at least one view", param_hint="--views")
-    sim = simulate_calibration(seed, n_views, corner_sigma_px, range_sigma_m)
+    sim = simulate_calibration(seed, n_views, corner_sigma_px, range_sigma_m, pose_protocol=poses)
     out = write_recording(sim, out_dir, seed)
     click.echo(f"recording: {out} ({n_views} views, truth in {out / 'truth.yaml'})")
 

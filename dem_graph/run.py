@@ -218,8 +218,11 @@ def load_run_config(
             config.motion.model = "constant_velocity"
         if lag_s is not None:
             config.isam2.lag_s = lag_s
-        if keyframe_every is not None:
-            config.isam2.keyframe_every = keyframe_every
+        if keyframe_every is not None:  # the batch's online pass has its own spacing
+            if config.estimator == "isam2-batch":
+                config.isam2.batch_keyframe_every = keyframe_every
+            else:
+                config.isam2.keyframe_every = keyframe_every
         if graph_process:
             config.isam2.graph_process = True
     except ValidationError as exc:

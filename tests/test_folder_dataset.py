@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -12,7 +13,7 @@ import yaml
 
 from dem_graph import progress as progress_module
 from dem_graph.datasets import folder as folder_module
-from dem_graph.datasets.base import GroundTruth, Sequence
+from dem_graph.datasets.base import GroundTruth, Sequence, read_ahead
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.datasets.folder import FolderSequence, open_folder_dataset, write_folder_dataset
 from dem_graph.errors import ConfigError, DatasetError
@@ -570,8 +571,44 @@ def test_camera_index_out_of_order(written):
 def test_corrupt_png_is_reported_when_read(written):
     (written / "images" / "000003.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 40)
     sequence = FolderSequence(written)  # images are only checked for existence on open
+    seen = []
     with pytest.raises(DatasetError, match=r"images/000003\.png: unreadable or corrupt PNG"):
-        list(sequence.events())
+        for event in sequence.events():
+            seen.append(event)
+    # images are decoded ahead of time in a thread, but the error comes when frame 3 is reached:
+    # frames 0-2 and every scan and odometry before frame 3 were delivered first
+    assert [e.index for e in seen if isinstance(e, CameraFrame)] == [0, 1, 2]
+    (written / "images" / "000003.png").write_bytes((written / "images" / "000002.png").read_bytes())
+    intact = list(FolderSequence(written).events())
+    first_3 = next(k for k, e in enumerate(intact) if isinstance(e, CameraFrame) and e.index == 3)
+    assert [(type(e), e.index) for e in seen] == [(type(e), e.index) for e in intact[:first_3]]
+
+
+def test_read_ahead_keeps_order_raises_in_place_and_stops_early():
+    def produce():
+        for k in range(10):
+            if k == 6:
+                raise DatasetError("x.png", "unreadable")
+            yield k
+
+    got = []
+    with pytest.raises(DatasetError, match="x.png: unreadable"):
+        for item in read_ahead(produce(), depth=2):
+            got.append(item)
+    assert got == [0, 1, 2, 3, 4, 5]
+    # a consumer that stops early stops the producing thread too
+    produced = []
+
+    def slow_source():
+        for k in range(1000):
+            produced.append(k)
+            yield k
+
+    stream = read_ahead(slow_source(), depth=3)
+    assert [next(stream) for _ in range(5)] == [0, 1, 2, 3, 4]
+    stream.close()
+    assert not any(t.name == "read-ahead" and t.is_alive() for t in threading.enumerate())
+    assert len(produced) <= 5 + 3 + 2  # what was consumed, the queue's depth, one in hand and one blocked
 
 
 def test_truncated_png_is_reported_when_read(written):

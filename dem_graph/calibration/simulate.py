@@ -73,13 +73,28 @@ def _cast(origin: np.ndarray, dirs: np.ndarray, T_cam_board: np.ndarray, outline
     return np.where(on, s, walls)
 
 
-def _random_board_pose(rng: np.random.Generator, T_cam_laser: np.ndarray, board: BoardSpec) -> np.ndarray:
-    """A board pose whose centre lies near the laser plane, 0.9-2.0 m ahead, tilted up to ~50 degrees."""
+POSE_PROTOCOLS = ("random", "guided")
+
+
+def _random_board_pose(rng: np.random.Generator, T_cam_laser: np.ndarray, board: BoardSpec, protocol: str = "random") -> np.ndarray:
+    """A board pose whose centre lies near the laser plane, 0.9-2.0 m ahead and up to 20 degrees to either side.
+
+    ``random``: tilted forward or back by up to 52 degrees and turned sideways by up to 40, uniformly (many
+    views nearly upright). ``guided``: as docs/calibration.md asks a person recording to hold it, tilted
+    forward or back by 34-57 degrees and turned sideways by 17-40. Both roll the board in its plane by up to
+    29 degrees. The board frame: x right, y down, z away from the camera.
+    """
+    if protocol not in POSE_PROTOCOLS:
+        raise ValueError(f"unknown board pose protocol {protocol!r}; one of {', '.join(POSE_PROTOCOLS)}")
     theta = rng.uniform(-0.35, 0.35)
     rho = rng.uniform(0.9, 2.0)
     centre = transform_points(T_cam_laser, np.array([[rho * np.cos(theta), rho * np.sin(theta), rng.uniform(-0.12, 0.12)]]))[0]
-    R_face = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # board x right, y down, z away from the camera
-    R = R_face @ rotation_from_rpy(rng.uniform(-0.9, 0.9), rng.uniform(-0.7, 0.7), rng.uniform(-0.5, 0.5))
+    if protocol == "random":
+        tilt_rad, turn_rad = rng.uniform(-0.9, 0.9), rng.uniform(-0.7, 0.7)
+    else:
+        tilt_rad = rng.choice([-1.0, 1.0]) * rng.uniform(0.6, 1.0)
+        turn_rad = rng.choice([-1.0, 1.0]) * rng.uniform(0.3, 0.7)
+    R = rotation_from_rpy(tilt_rad, turn_rad, rng.uniform(-0.5, 0.5))
     half = 0.5 * np.array([(board.cols - 1) * board.square_m, (board.rows - 1) * board.square_m, 0.0])
     return make_pose(R, centre - R @ half)
 
@@ -94,8 +109,10 @@ def simulate_calibration(
     intrinsics: Intrinsics | None = None,
     angle_increment_rad: float = np.radians(0.25),
     margin_m: float = 0.05,
+    pose_protocol: str = "random",
 ) -> SimulatedCalibration:
-    """``n_views`` views whose whole board is in the image and is crossed by at least 15 beams."""
+    """``n_views`` views whose whole board is in the image and is crossed by at least 15 beams;
+    ``pose_protocol`` is how the board is held (see :func:`_random_board_pose`)."""
     rng = np.random.default_rng(seed)
     board = board or BoardSpec(9, 6, 0.09)
     T = default_truth() if T_cam_laser is None else np.asarray(T_cam_laser, dtype=float)
@@ -109,7 +126,7 @@ def simulate_calibration(
     room = np.array([3.0, 2.0, 5.0])
     poses, corners, ranges = [], [], []
     while len(poses) < n_views:
-        T_cb = _random_board_pose(rng, T, board)
+        T_cb = _random_board_pose(rng, T, board, pose_protocol)
         pts = transform_points(T_cb, board.corners_board)
         if np.any(pts[:, 2] < 0.3) or T_cb[2, 2] < 0.3:
             continue

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import abc
-from collections.abc import Iterator
+import queue
+import threading
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -20,6 +23,54 @@ class GroundTruth:
 
     trajectory: Trajectory  # T_world_body, queryable at any time inside its span
     elevation: ElevationGrid | None = None  # the terrain, world metres
+
+
+_Item = TypeVar("_Item")
+_END = object()
+
+
+def read_ahead(items: Iterable[_Item], depth: int = 4) -> Iterator[_Item]:
+    """The items of ``items`` in order, produced up to ``depth`` ahead by a background thread.
+
+    For images: OpenCV's decoding releases the GIL, so the next frames are read while the estimator works
+    on this one (a seventh of an in-process run's time on ``paper`` was PNG decoding). An exception raised
+    while producing an item is raised here, when that item is reached; stopping early stops the thread.
+    """
+    slots: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def put(entry) -> bool:
+        while not stop.is_set():
+            try:
+                slots.put(entry, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for item in items:
+                if not put((item, None)):
+                    return
+        except BaseException as exc:  # handed to the consumer, raised there
+            put((None, exc))
+            return
+        put((_END, None))
+
+    thread = threading.Thread(target=produce, name="read-ahead", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item, exc = slots.get()
+            if exc is not None:
+                raise exc
+            if item is _END:
+                return
+            yield item
+    finally:
+        stop.set()
+        thread.join()
 
 
 def merged_order(*stream_times) -> list[tuple[int, int]]:

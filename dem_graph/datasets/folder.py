@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 import yaml
 
-from dem_graph.datasets.base import GroundTruth, Sequence, merged_order
+from dem_graph.datasets.base import GroundTruth, Sequence, merged_order, read_ahead
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.errors import ConfigError, DatasetError
 from dem_graph.geometry.rig import SensorRig, load_rig, save_rig
@@ -419,6 +419,7 @@ class FolderSequence(Sequence):
         Raises :class:`DatasetError` naming the image when a PNG is missing or cannot be decoded.
         """
         odo = self._odo
+        images = read_ahead(_read_image(path) for path in self._frame_files)  # camera frames come in index order
         for kind, i in self._order:
             if kind == _ODOMETRY:
                 yield Odometry(
@@ -431,7 +432,7 @@ class FolderSequence(Sequence):
             elif kind == _LASER:
                 yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges_m[i].copy(), i)
             else:
-                yield CameraFrame(float(self._frame_t_s[i]), _read_image(self._frame_files[i]), i)
+                yield CameraFrame(float(self._frame_t_s[i]), next(images), i)
 
     def __repr__(self) -> str:
         return (

@@ -61,7 +61,7 @@ import cv2
 import numpy as np
 import yaml
 
-from dem_graph.datasets.base import GroundTruth, Sequence, merged_order
+from dem_graph.datasets.base import GroundTruth, Sequence, merged_order, read_ahead
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.datasets.velodyne import (
     RingLaser,
@@ -340,13 +340,14 @@ class _KittiSequence(Sequence):
         return self._scan_t_s.copy(), np.array(ranges, dtype=float).reshape(len(ranges), self._rig.laser.beams.count)
 
     def events(self) -> Iterator[Event]:
+        images = read_ahead(_read_image(path) for path in self._frame_files)  # camera frames come in index order
         for kind, i in self._order:
             if kind == _ODOMETRY:
                 yield self._odometry[i]
             elif kind == _LASER:
                 yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges(i), i)
             else:
-                yield CameraFrame(float(self._frame_t_s[i]), _read_image(self._frame_files[i]), i)
+                yield CameraFrame(float(self._frame_t_s[i]), next(images), i)
 
     @property
     def ground_truth(self) -> GroundTruth | None:

@@ -310,7 +310,9 @@ class RosbagSequence(Sequence):
         """Odometry, scans and images merged by time (odometry, then laser, then camera at equal times)."""
         AnyReader = _anyreader()
         with AnyReader([self.path]) as reader:
-            images = self._iter_images(reader)  # in the order of _frame_t_s
+            # in the order of _frame_t_s; decoded here, not read ahead in a thread (base.read_ahead): the
+            # ROS 2 bag's SQLite connection refuses to be used from another thread
+            images = self._iter_images(reader)
             for kind, i in merged_order([o.t_s for o in self._odometry], self._scan_t_s, self._frame_t_s):
                 if kind == 0:
                     yield self._odometry[i]
