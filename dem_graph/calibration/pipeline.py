@@ -94,6 +94,22 @@ class CalibrationResult:
     def sigma_rot_deg(self) -> np.ndarray:
         return np.degrees(np.sqrt(np.diag(self.covariance)[:3]))
 
+    def recording_advice(self, max_sigma_rot_deg: float = 0.1) -> str | None:
+        """What to record next when the rotation the rig carries is known to worse than ``max_sigma_rot_deg``
+        (1 sigma, about any laser axis; 0.1 deg keeps three sigma within 0.3 deg), else None. Tilting the board
+        forward and back is what fixes the scan plane's tilt, turning it sideways its heading (docs/calibration.md,
+        "Recording")."""
+        sigma = np.degrees(np.sqrt(np.diag(self.rig_covariance)[:3]))
+        worst = int(np.argmax(sigma))
+        if sigma[worst] <= max_sigma_rot_deg:
+            return None
+        how = (
+            "tilted 35-55 deg forward or back, held well to the left and right of the centre",  # the scan plane's roll
+            "tilted 35-55 deg forward or back, 1.5-2 m away as well as near",  # its pitch: heights grow with distance
+            "turned 20-40 deg to the left and to the right",  # the heading within the scan plane
+        )[worst]
+        return f"the rotation about the laser's {'xyz'[worst]} axis is known to {sigma[worst]:.2f} deg (1 sigma): record more views, with the board {how}"
+
     @property
     def sigma_trans_mm(self) -> np.ndarray:
         return 1000.0 * np.sqrt(np.diag(self.covariance)[3:])
@@ -266,6 +282,9 @@ def calibrate_views(
             log.warning("fewer than four distinct board poses: no leave-one-pose-out spread")
         else:
             result.jackknife_covariance = found[0]
+    advice = result.recording_advice()
+    if advice:
+        log.warning(advice)
     return result
 
 
