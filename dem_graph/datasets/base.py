@@ -25,6 +25,13 @@ class GroundTruth:
     elevation: ElevationGrid | None = None  # the terrain, world metres
 
 
+def first_not_increasing(t) -> int | None:
+    """The first index whose time is not after the one before it (times must increase strictly), or None."""
+    t = np.asarray(t, dtype=float)
+    bad = np.flatnonzero(np.diff(t) <= 0) if len(t) > 1 else ()
+    return int(bad[0]) + 1 if len(bad) else None
+
+
 _Item = TypeVar("_Item")
 _END = object()
 

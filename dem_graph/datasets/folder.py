@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 import yaml
 
-from dem_graph.datasets.base import GroundTruth, Sequence, merged_order, read_ahead
+from dem_graph.datasets.base import GroundTruth, Sequence, first_not_increasing, merged_order, read_ahead
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.errors import ConfigError, DatasetError
 from dem_graph.geometry.rig import SensorRig, load_rig, save_rig
@@ -81,8 +81,8 @@ def _check_times(path: Path, name: str, t: np.ndarray, t_start_s: float) -> None
     if not np.all(np.isfinite(t)):
         i = int(np.argmax(~np.isfinite(t)))
         raise DatasetError(path, f"{name}[{i}] is NaN or infinite")
-    if len(t) > 1 and np.any(np.diff(t) <= 0):
-        i = int(np.argmax(np.diff(t) <= 0)) + 1
+    i = first_not_increasing(t)
+    if i is not None:
         raise DatasetError(
             path, f"{name} is not strictly increasing at index {i} ({float(t[i])!r} after {float(t[i - 1])!r})"
         )

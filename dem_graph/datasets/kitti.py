@@ -61,7 +61,7 @@ import cv2
 import numpy as np
 import yaml
 
-from dem_graph.datasets.base import GroundTruth, Sequence, merged_order, read_ahead
+from dem_graph.datasets.base import GroundTruth, Sequence, first_not_increasing, merged_order, read_ahead
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.datasets.velodyne import (
     RingLaser,
@@ -132,8 +132,8 @@ def read_times(path: Path) -> np.ndarray:
         t = np.loadtxt(path, dtype=float, ndmin=1)
     except ValueError as exc:
         raise DatasetError(path, f"not one number per line ({exc})") from None
-    if len(t) > 1 and np.any(np.diff(t) <= 0):
-        i = int(np.argmax(np.diff(t) <= 0)) + 1
+    i = first_not_increasing(t)
+    if i is not None:
         raise DatasetError(path, f"times do not increase at line {i + 1}")
     return t
 
@@ -552,8 +552,8 @@ class KittiRawSequence(_KittiSequence):
 
         t = {k: rel(v[1], v[2]) for k, v in streams.items()}
         for k, (_, _, _, stamps_path) in streams.items():
-            if len(t[k]) > 1 and np.any(np.diff(t[k]) <= 0):
-                i = int(np.argmax(np.diff(t[k]) <= 0)) + 1
+            i = first_not_increasing(t[k])
+            if i is not None:
                 raise DatasetError(stamps_path, f"time stamps do not increase at line {i + 1}")
         oxts = _read_oxts(streams["oxts"][0])
         T_body_lidar = make_pose(np.eye(3), [0.0, 0.0, lidar_height_m])

@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dem_graph.datasets.base import Sequence, merged_order
+from dem_graph.datasets.base import Sequence, first_not_increasing, merged_order
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.errors import DatasetError, MissingDependencyError
 from dem_graph.geometry.rig import OdometrySpec, PlanarBeams, SensorRig
@@ -278,8 +278,8 @@ class RosbagSequence(Sequence):
             yield t, (image_from_message(msg, self._image_type, where) if decode else None)
 
     def _check_increasing(self, t: np.ndarray, topic: str) -> None:
-        if len(t) > 1 and np.any(np.diff(t) <= 0):
-            i = int(np.argmax(np.diff(t) <= 0)) + 1
+        i = first_not_increasing(t)
+        if i is not None:
             raise DatasetError(self._where(topic), f"message {i}: time {t[i]!r} is not after the previous {t[i - 1]!r}")
 
     # --------------------------------------------------------------------------------------------
