@@ -33,6 +33,15 @@ def test_closed_form_recovers_truth_without_noise():
     assert np.max(np.abs(local(sim.T_cam_laser, result.T_cam_laser))) < 1e-6
 
 
+def test_board_outline_and_containment():
+    from dem_graph.calibration.board import BoardSpec
+
+    board = BoardSpec(9, 6, 0.09)  # inner corners 0..8 x 0..5 squares; the squares reach one square beyond them
+    np.testing.assert_allclose(board.outline(0.05), (-0.14, 0.86, -0.14, 0.59), atol=1e-12)
+    points = np.array([[-0.139, 0.0, 0.0], [-0.141, 0.0, 0.0], [0.4, 0.589, 0.0], [0.4, 0.591, 0.0], [np.nan, 0.1, 0.0]])
+    assert board.contains(points, 0.05).tolist() == [True, False, True, False, False]
+
+
 def test_jacobian_matches_numerical_derivative():
     rng = np.random.default_rng(0)
     T = retract(simulate_calibration(0, 3).T_cam_laser, 0.05 * rng.standard_normal(6))

@@ -29,6 +29,17 @@ class BoardSpec:
         i, j = np.meshgrid(np.arange(self.cols), np.arange(self.rows))
         return np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], axis=1) * self.square_m
 
+    def outline(self, margin_m: float = 0.0) -> tuple[float, float, float, float]:
+        """``x_min, x_max, y_min, y_max`` (board frame, metres) of the squares' area grown by ``margin_m``."""
+        sq = self.square_m
+        return (-sq - margin_m, self.cols * sq + margin_m, -sq - margin_m, self.rows * sq + margin_m)
+
+    def contains(self, points_board: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
+        """Mask of the (N,3) board-frame points whose x, y lie within :meth:`outline`."""
+        x0, x1, y0, y1 = self.outline(margin_m)
+        x, y = points_board[:, 0], points_board[:, 1]
+        return (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+
     @property
     def diagonal_m(self) -> float:
         """Diagonal of the squares' area ((cols+1) x (rows+1) squares)."""

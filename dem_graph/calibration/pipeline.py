@@ -152,25 +152,19 @@ class CalibrationResult:
         }
 
 
-def _inside_outline(points_board: np.ndarray, board: BoardSpec, margin_m: float) -> np.ndarray:
-    sq = board.square_m
-    x, y = points_board[:, 0], points_board[:, 1]
-    return (x >= -sq - margin_m) & (x <= board.cols * sq + margin_m) & (y >= -sq - margin_m) & (y <= board.rows * sq + margin_m)
-
-
 def _returns_on_board(T: np.ndarray, obs: BoardObservation, points_laser: np.ndarray, board: BoardSpec, tol_m: float, margin_m: float) -> np.ndarray:
     """Mask of the finite points near the board plane and inside its outline under ``T``."""
     finite = np.all(np.isfinite(points_laser), axis=1)
     X = transform_points(T, np.where(finite[:, None], points_laser, 0.0))
     near = np.abs(X @ obs.n_cam - obs.d_m) <= tol_m
-    inside = _inside_outline(transform_points(invert(obs.T_cam_board), X), board, margin_m)
+    inside = board.contains(transform_points(invert(obs.T_cam_board), X), margin_m)
     return finite & near & inside
 
 
 def _segment_score(T: np.ndarray, obs: BoardObservation, seg: LineSegment, board: BoardSpec, tol_m: float, margin_m: float) -> float:
     """RMS distance of the segment from the board plane under ``T`` (inf when it is mostly outside the board)."""
     X = transform_points(T, seg.points_laser)
-    if np.mean(_inside_outline(transform_points(invert(obs.T_cam_board), X), board, margin_m)) < 0.8:
+    if np.mean(board.contains(transform_points(invert(obs.T_cam_board), X), margin_m)) < 0.8:
         return np.inf
     return float(np.sqrt(np.mean((X @ obs.n_cam - obs.d_m) ** 2)))
 

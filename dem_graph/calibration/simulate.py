@@ -49,25 +49,20 @@ class SimulatedCalibration:
     range_sigma_m: float
     margin_m: float  # white border of the board around its squares
 
-    def board_outline(self) -> tuple[float, float, float, float]:
-        """x_min, x_max, y_min, y_max of the physical board in the board frame."""
-        sq = self.board.square_m
-        return (-sq - self.margin_m, self.board.cols * sq + self.margin_m, -sq - self.margin_m, self.board.rows * sq + self.margin_m)
-
 
 def _project(intrinsics: Intrinsics, points_cam: np.ndarray) -> np.ndarray:
     uv, _ = cv2.projectPoints(points_cam.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), intrinsics.K, intrinsics.distortion)
     return uv.reshape(-1, 2)
 
 
-def _cast(origin: np.ndarray, dirs: np.ndarray, T_cam_board: np.ndarray, outline, room_half_m: np.ndarray) -> np.ndarray:
+def _cast(origin: np.ndarray, dirs: np.ndarray, T_cam_board: np.ndarray, board: BoardSpec, margin_m: float, room_half_m: np.ndarray) -> np.ndarray:
     """Ranges along unit ``dirs`` (camera frame) from ``origin``: the board if hit, else the room's walls."""
     n, p0 = T_cam_board[:3, 2], T_cam_board[:3, 3]
     denom = dirs @ n
     with np.errstate(divide="ignore", invalid="ignore"):
         s = ((p0 - origin) @ n) / denom
         local = transform_points(invert(T_cam_board), origin + s[:, None] * dirs)
-        on = (s > 0) & (local[:, 0] >= outline[0]) & (local[:, 0] <= outline[1]) & (local[:, 1] >= outline[2]) & (local[:, 1] <= outline[3])
+        on = (s > 0) & board.contains(local, margin_m)
         # box room centred on the camera: exit distance along each axis
         walls = np.min(np.where(np.abs(dirs) > 1e-12, (room_half_m * np.sign(dirs) - origin) / dirs, np.inf), axis=1)
     return np.where(on, s, walls)
@@ -121,8 +116,6 @@ def simulate_calibration(
     angles = -np.pi / 2 + angle_increment_rad * np.arange(n_beams)
     dirs_laser = np.stack([np.cos(angles), np.sin(angles), np.zeros(n_beams)], axis=1)
     dirs_cam = dirs_laser @ T[:3, :3].T
-    sq = board.square_m
-    outline = (-sq - margin_m, board.cols * sq + margin_m, -sq - margin_m, board.rows * sq + margin_m)
     room = np.array([3.0, 2.0, 5.0])
     poses, corners, ranges = [], [], []
     while len(poses) < n_views:
@@ -133,7 +126,7 @@ def simulate_calibration(
         uv = _project(intr, pts)
         if np.any(uv < 15) or np.any(uv[:, 0] > intr.width_px - 16) or np.any(uv[:, 1] > intr.height_px - 16):
             continue
-        r = _cast(T[:3, 3], dirs_cam, T_cb, outline, room)
+        r = _cast(T[:3, 3], dirs_cam, T_cb, board, margin_m, room)
         on_board = np.abs(transform_points(invert(T_cb), T[:3, 3] + r[:, None] * dirs_cam)[:, 2]) < 1e-9
         if on_board.sum() < 15:
             continue
@@ -160,8 +153,7 @@ def render_board_image(sim: SimulatedCalibration, view: int, rng: np.random.Gene
     n, p0 = T_cb[:3, 2], T_cb[:3, 3]
     s = (p0 @ n) / (rays @ n)
     local = transform_points(invert(T_cb), s[:, None] * rays)
-    x0, x1, y0, y1 = sim.board_outline()
-    on = (s > 0) & (local[:, 0] >= x0) & (local[:, 0] <= x1) & (local[:, 1] >= y0) & (local[:, 1] <= y1)
+    on = (s > 0) & sim.board.contains(local, sim.margin_m)
     sq = sim.board.square_m
     i, j = np.floor(local[:, 0] / sq), np.floor(local[:, 1] / sq)
     in_squares = (i >= -1) & (i <= sim.board.cols - 1) & (j >= -1) & (j <= sim.board.rows - 1)
