@@ -20,7 +20,15 @@ def test_sample_opens_with_a_road_ring(kitti_sequence):
     assert (cam.width_px, cam.height_px) == (1226, 370)
     for i in (0, 25, 50):
         points, ring = seq.read_scan(i)
-        assert ring.max() == 63  # every scan splits into 64 rings by the stored order
+        # every scan splits into the HDL-64E's 64 rings by the stored order: ring 0 highest, 63 lowest, over
+        # the sensor's vertical field of view (+2 to -24.8 deg, Velodyne's data sheet), each ring a thin cone
+        elevation_deg = np.degrees(np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1])))
+        assert np.bincount(ring, minlength=64).min() > 1000 and ring.max() == 63
+        median = np.array([np.median(elevation_deg[ring == r]) for r in range(64)])
+        assert np.all(np.diff(median) < 0)  # measured on frames 0, 25, 50: no inversion
+        assert 1.0 < median[0] < 3.5 and -25.0 < median[-1] < -22.5  # measured 2.3-2.8 and -23.7
+        spread = [np.subtract(*np.percentile(elevation_deg[ring == r], [75, 25])) for r in range(64)]
+        assert max(spread) < 1.5  # interquartile range in degrees, measured at most 1.31
     truth = seq.ground_truth.trajectory
     assert 60.0 < truth.path_length_m < 80.0
     np.testing.assert_allclose(truth.positions_xyz[-1, 1:], 0.0, atol=1.0)  # straight ahead along body x, z up
