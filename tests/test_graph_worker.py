@@ -4,6 +4,10 @@ process against the simulator's truth."""
 
 from __future__ import annotations
 
+import os
+import signal
+import socket
+import threading
 import time
 
 import numpy as np
@@ -131,6 +135,39 @@ def test_a_failed_update_waits_for_a_restart(recorded, monkeypatch):
     assert sorted(restarted.poses) == [k] and sorted(restarted.points) == [7]
     np.testing.assert_allclose(restarted.poses[k], T, atol=1e-9)  # priors only: the estimate is the prior
     np.testing.assert_allclose(restarted.points[7], X[7], atol=1e-9)
+
+
+def test_a_busy_graph_process_does_not_hold_up_the_frame(recorded):
+    """While the second process does not read (stopped here, as during a long update), sending
+    keyframes does not wait for it, even with the socket's buffer far smaller than the messages;
+    once it reads again every keyframe is smoothed, in order, exactly as when sent one at a time
+    (the keyframes arrive together, so only the final estimates are compared, to 0.5 mm: the
+    bound of the test above for keyframes smoothed together). Before the sending thread, a send
+    from the frame waited here for ever: the process, answering, waited for the frame to read."""
+    setup, messages, expected = recorded
+    graph = ProcessGraph(setup)
+    pid = graph._process.pid
+    try:
+        sock = socket.socket(fileno=os.dup(graph._conn.fileno()))
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+        sock.close()
+        os.kill(pid, signal.SIGSTOP)
+        sender = threading.Thread(target=lambda: [graph.send(m) for m in messages], daemon=True)
+        sender.start()
+        sender.join(10.0)
+        assert not sender.is_alive(), "send waited for the stopped graph process"
+        os.kill(pid, signal.SIGCONT)
+        pending, (poses, points) = graph.finish()
+        assert [r.failure for r in pending if r.failure] == []
+        assert pending[-1].k == messages[-1].k
+        assert sorted(poses) == list(range(messages[-1].k + 1))
+        want = expected[-1]
+        for k in want.poses:
+            np.testing.assert_allclose(poses[k][:3, 3], want.poses[k][:3, 3], atol=5e-4)
+    finally:
+        os.kill(pid, signal.SIGCONT)
+        graph._process.kill()  # (a send still waiting, as before the fix, would wait for ever)
+        graph.close()
 
 
 def test_a_bad_message_in_the_second_process_is_a_clear_error(recorded):

@@ -18,9 +18,11 @@ keyframes later; a run then depends on the timing).
 
 from __future__ import annotations
 
+import queue
 import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
@@ -238,12 +240,21 @@ def _serve(conn) -> None:
             return
 
 
+_STOP = object()  # tells the sending thread to end
+
+
 class ProcessGraph:
     """The graph in a second process (another core); results come back when they are ready.
 
     The process is a fresh interpreter running this module (not a fork of the estimator's, and not
     ``multiprocessing``'s spawn, which would re-run the user's script), talking over a socket pair;
-    its first message is the setup."""
+    its first message is the setup.
+
+    Messages leave through a thread of their own: the second process reads only between updates, so
+    during a long one (the window's cut, a relinearisation) the socket's buffer fills after a few
+    keyframes, and a send from the frame's own thread would wait for the update to end (frames of
+    0.3-2 s at 400 points). The thread waits instead; the process then takes everything that has
+    arrived as one update."""
 
     def __init__(self, setup: GraphSetup):
         ours, theirs = socket.socketpair()
@@ -256,14 +267,26 @@ class ProcessGraph:
             theirs.close()
         self._conn = Connection(ours.detach())
         self._conn.send(setup)
+        self._outbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._send_failed = threading.Event()
+        self._sender = threading.Thread(target=self._send_loop, name="graph-sender", daemon=True)
+        self._sender.start()
+
+    def _send_loop(self) -> None:
+        while (message := self._outbox.get()) is not _STOP:
+            try:
+                self._conn.send(message)
+            except OSError:  # the process has ended; the next send or receive says so
+                self._send_failed.set()
+                return
 
     def send(self, message) -> None:
-        try:
-            self._conn.send(message)
-        except OSError:  # a broken pipe: the process has ended; its last words, if any, explain why
-            while self._conn.poll():
+        """Queue ``message`` for the second process; returns at once, whatever the process is doing."""
+        if self._send_failed.is_set():  # a broken pipe: the process has ended; its last words, if any, explain why
+            while not self._conn.closed and self._conn.poll():
                 self._receive()
-            raise DemGraphError("the graph process ended unexpectedly") from None
+            raise DemGraphError("the graph process ended unexpectedly")
+        self._outbox.put(message)
 
     def _receive(self):
         try:
@@ -288,11 +311,18 @@ class ProcessGraph:
         while True:
             kind, payload = self._receive()
             if kind == "final":
+                self._stop_sender()
                 self._conn.close()  # the process has ended
                 return pending, payload
             pending.append(payload)
 
+    def _stop_sender(self, timeout_s: float = 5.0) -> None:
+        self._outbox.put(_STOP)
+        self._sender.join(timeout_s)
+
     def close(self) -> None:
+        if not self._conn.closed:  # (after finish the thread has ended already)
+            self._stop_sender()
         self._conn.close()
         try:
             self._process.wait(timeout=5)
