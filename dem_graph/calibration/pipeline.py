@@ -1,7 +1,8 @@
 """The calibration from end to end: boards and scans in, ``T_cam_laser`` with its covariance and a report per view out.
 
 :func:`calibrate_views` works on arrays (board observations and scans); :func:`calibrate_recording` owns
-the loop over a recording: it pairs images with scans by time, reads the images and finds the boards.
+the loop over a recording (any layout: it asks the :class:`~dem_graph.calibration.readers.CalibrationRecording`
+for each image): it pairs images with scans by time, reads the images and finds the boards.
 
 Which returns lie on the board is decided with the camera's help. Each scan offers straight segments of
 board-like length (:mod:`~dem_graph.calibration.laser_line`); random sets of five views' preferred
@@ -283,7 +284,8 @@ def calibrate_views(
 
 
 def calibrate_recording(recording: CalibrationRecording, options: CalibrationOptions = CalibrationOptions(), board: BoardSpec | None = None) -> CalibrationResult:
-    """Pair images with scans, find the boards in the images and calibrate (see :func:`calibrate_views`)."""
+    """Pair images with scans, find the boards in the images and calibrate (see :func:`calibrate_views`).
+    ``board``, when given, replaces the recording's own (a bag has none)."""
     board = board or recording.board
     if board is None:
         raise CalibrationError("the board's size is not known: the recording does not give it (give --board COLSxROWS and --square-m)")
