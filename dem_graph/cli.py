@@ -327,29 +327,88 @@ def _angle_window(text: str | None):
     return (math.radians(lo), math.radians(hi))
 
 
+def _board_corners(ctx, param, text: str | None):
+    """``COLSxROWS`` inner corners, both at least 2."""
+    if text is None:
+        return None
+    parts = text.lower().split("x")
+    try:
+        cols, rows = (int(x) for x in parts)
+    except ValueError:
+        raise click.BadParameter(f"give the board's inner corners as COLSxROWS, e.g. 9x6, not {text!r}") from None
+    if cols < 2 or rows < 2:
+        raise click.BadParameter(f"a board has at least 2x2 inner corners, not {text!r}")
+    return cols, rows
+
+
+def _calibration_board(recording_board, corners, square_m):
+    """The recording's board with ``--board`` / ``--square-m`` in place of its parts; None when a part is unknown."""
+    from dem_graph.calibration.board import BoardSpec
+
+    cols, rows = corners if corners else (recording_board.cols, recording_board.rows) if recording_board else (None, None)
+    square = square_m if square_m is not None else recording_board.square_m if recording_board else None
+    return BoardSpec(cols, rows, square) if cols is not None and square is not None else None
+
+
+_ROSBAG_OPTIONS = ("image_topic", "scan_topic", "camera_info_topic", "intrinsics_path")
+
+
+def _read_calibration_recording(recording: Path, layout: str, topics: dict):
+    """The recording in ``layout``, after checking that the options given are those of that layout."""
+    flag = {name: "--" + name.replace("_path", "").replace("_", "-") for name in _ROSBAG_OPTIONS}
+    if layout == "radlocc":
+        given = [flag[k] for k, v in topics.items() if v is not None]
+        if given:
+            raise click.UsageError(f"{', '.join(given)}: only for --format rosbag")
+        from dem_graph.calibration.readers import read_radlocc_recording
+
+        return read_radlocc_recording(recording)
+    for name in ("image_topic", "scan_topic"):
+        if topics[name] is None:
+            raise click.UsageError(f"--format rosbag needs {flag[name]}")
+    if (topics["camera_info_topic"] is None) == (topics["intrinsics_path"] is None):
+        raise click.UsageError("--format rosbag needs the intrinsics: give --camera-info-topic or --intrinsics (one of them)")
+    from dem_graph.calibration.rosbag_reader import read_rosbag_recording
+
+    return read_rosbag_recording(recording, **topics)
+
+
 @main.command()
 @click.argument("recording", type=click.Path(path_type=Path))
 @click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Rig YAML to update [default: one made from the recording's intrinsics and scans].")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Folder for rig.yaml, calibration.json and views/.")
-@click.option("--format", "layout", type=click.Choice(["radlocc"]), default="radlocc", show_default=True, help="Layout of the recording.")
+@click.option(
+    "--format", "layout", type=click.Choice(["radlocc", "rosbag"]), default="radlocc", show_default=True, help="Layout of the recording: a RADLOCC folder, or a ROS 1 or ROS 2 bag."
+)
+@click.option("--board", "board_corners", default=None, callback=_board_corners, help="Inner corners of the checkerboard, COLSxROWS, e.g. 9x6 [default: from the intrinsics file].")
+@click.option("--square-m", type=click.FloatRange(min=0.0, min_open=True), default=None, help="Side of the checkerboard's squares, metres [default: from the intrinsics file].")
+@click.option("--image-topic", default=None, help="rosbag: sensor_msgs/Image or CompressedImage topic.")
+@click.option("--scan-topic", default=None, help="rosbag: sensor_msgs/LaserScan topic.")
+@click.option("--camera-info-topic", default=None, help="rosbag: sensor_msgs/CameraInfo topic with the intrinsics (or give --intrinsics).")
+@click.option("--intrinsics", "intrinsics_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="rosbag: OpenCV intrinsics file (XML/YAML) instead of --camera-info-topic.")
 @click.option("--window-deg", default=None, help="Search the board only between these beam angles, degrees, as A,B.")
 @click.option("--max-dt-s", type=float, default=0.05, show_default=True, help="Longest time between an image and its scan, seconds.")
 @click.option("--range-sigma-m", type=float, default=0.02, show_default=True, help="Range noise of the scanner, metres.")
 @click.option("--jackknife/--no-jackknife", default=True, show_default=True, help="Also the leave-one-pose-out spread of the estimate.")
 @_friendly_errors
-def calibrate(recording, rig_path, out_dir, layout, window_deg, max_dt_s, range_sigma_m, jackknife) -> None:
+def calibrate(
+    recording, rig_path, out_dir, layout, board_corners, square_m, image_topic, scan_topic, camera_info_topic, intrinsics_path, window_deg, max_dt_s, range_sigma_m, jackknife
+) -> None:
     """Estimate T_cam_laser from checkerboard views and write the rig with it."""
     import numpy as np
 
     from dem_graph.calibration.pipeline import CalibrationOptions, calibrate_recording
-    from dem_graph.calibration.readers import read_radlocc_recording
     from dem_graph.calibration.report import rig_from_recording, write_calibration
     from dem_graph.geometry.rig import load_rig
 
     options = CalibrationOptions(window_rad=_angle_window(window_deg), max_dt_s=max_dt_s, range_sigma_m=range_sigma_m, jackknife=jackknife)
-    data = read_radlocc_recording(recording)
+    topics = {"image_topic": image_topic, "scan_topic": scan_topic, "camera_info_topic": camera_info_topic, "intrinsics_path": intrinsics_path}
+    data = _read_calibration_recording(recording, layout, topics)
+    board = _calibration_board(data.board, board_corners, square_m)
+    if board is None:
+        raise click.UsageError(f"the board's size is not known ({recording} does not give it): give --board COLSxROWS and --square-m")
     rig = load_rig(rig_path) if rig_path else rig_from_recording(data, range_sigma_m)
-    result = calibrate_recording(data, options)
+    result = calibrate_recording(data, options, board)
     paths = write_calibration(result, data, rig, out_dir, max_dt_s)
     used = sum(v.used for v in result.views)
     click.echo(f"T_cam_laser from {used} of {len(result.views)} views:\n{np.array2string(result.T_cam_laser, precision=4, suppress_small=True)}")

@@ -1,7 +1,8 @@
 """The calibration from end to end: boards and scans in, ``T_cam_laser`` with its covariance and a report per view out.
 
 :func:`calibrate_views` works on arrays (board observations and scans); :func:`calibrate_recording` owns
-the loop over a recording: it pairs images with scans by time, reads the images and finds the boards.
+the loop over a recording (any layout: it asks the :class:`~dem_graph.calibration.readers.CalibrationRecording`
+for each image): it pairs images with scans by time, reads the images and finds the boards.
 
 Which returns lie on the board is decided with the camera's help. Each scan offers straight segments of
 board-like length (:mod:`~dem_graph.calibration.laser_line`); random sets of five views' preferred
@@ -30,7 +31,7 @@ from dem_graph.calibration.solve import (
     refine,
     refine_unweighted,
 )
-from dem_graph.errors import CalibrationError, DatasetError
+from dem_graph.errors import CalibrationError
 from dem_graph.geometry.se3 import invert, transform_points
 from dem_graph.progress import progress
 
@@ -283,16 +284,15 @@ def calibrate_views(
 
 
 def calibrate_recording(recording: CalibrationRecording, options: CalibrationOptions = CalibrationOptions(), board: BoardSpec | None = None) -> CalibrationResult:
-    """Pair images with scans, find the boards in the images and calibrate (see :func:`calibrate_views`)."""
-    import cv2
-
+    """Pair images with scans, find the boards in the images and calibrate (see :func:`calibrate_views`).
+    ``board``, when given, replaces the recording's own (a bag has none)."""
     board = board or recording.board
     if board is None:
-        raise CalibrationError("the board's size is not known: the intrinsics file does not give it")
+        raise CalibrationError("the board's size is not known: the recording does not give it (give --board COLSxROWS and --square-m)")
     scans = recording.scans
     pairs = pair_nearest(recording.image_times_s, scans.times_s, options.max_dt_s)
-    n = len(recording.image_paths)
-    reports = [ViewReport(k, recording.image_paths[k].name) for k in range(n)]
+    n = len(recording.image_names)
+    reports = [ViewReport(k, recording.image_names[k]) for k in range(n)]
     boards: list[BoardObservation | None] = [None] * n
     ranges = np.full((n, scans.n_beams), np.nan)
     K, dist = recording.intrinsics.K, recording.intrinsics.distortion
@@ -301,12 +301,9 @@ def calibrate_recording(recording: CalibrationRecording, options: CalibrationOpt
             reports[k].reason = f"no scan within {options.max_dt_s} s of the image"
             continue
         ranges[k] = scans.ranges_m[pairs[k]]
-        image = cv2.imread(str(recording.image_paths[k]), cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            raise DatasetError(recording.image_paths[k], "not a readable image")
-        corners = detect_corners(image, board)
+        corners = detect_corners(recording.load_image(k), board)
         if corners is None:
-            log.warning("%s: no %dx%d board found", recording.image_paths[k].name, board.cols, board.rows)
+            log.warning("%s: no %dx%d board found", recording.image_names[k], board.cols, board.rows)
             continue
         boards[k] = board_from_corners(corners, board, K, dist, options.corner_sigma_px)
     return calibrate_views(boards, ranges, scans.angles_rad, board, options, reports=reports)

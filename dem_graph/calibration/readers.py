@@ -1,6 +1,9 @@
 """Readers and writers for calibration recordings, and the pairing of images with scans by time.
 
-The one layout read so far is RADLOCC's text layout as in ``../shared/data/hokuyo_checkerboard``::
+A recording (:class:`CalibrationRecording`) lists its images by name and time and reads each on demand, so
+the calibration does not care where the images live. Two layouts are read: ROS 1 and ROS 2 bags
+(:func:`~dem_graph.calibration.rosbag_reader.read_rosbag_recording`) and, here, RADLOCC's text layout as
+in ``../shared/data/hokuyo_checkerboard``::
 
     RECORDING/data/RGB1.png, RGB2.png, ...   camera images, numbered from 1
     RECORDING/data/camera.txt                 one time stamp (seconds) per image, in image order
@@ -14,8 +17,10 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -57,15 +62,42 @@ class Intrinsics:
     height_px: int
 
 
+ImageReader = Callable[[Any, bool], np.ndarray]  # (image key, colour) -> 8-bit image, grey (H,W) or BGR (H,W,3)
+
+
 @dataclass(frozen=True)
 class CalibrationRecording:
-    """What a calibration needs from a recording: images with their times, scans, intrinsics, the board."""
+    """What a calibration needs from a recording: images with their times, scans, intrinsics, the board.
 
-    image_paths: list[Path]
+    Images are read when asked for (:meth:`load_image`): ``read_image`` takes image ``k``'s entry of
+    ``image_keys`` (a file path, a message's place in a bag) and raises :class:`DatasetError` naming the
+    file or topic when the image cannot be read."""
+
+    image_names: list[str]  # how reports and logs name each image
     image_times_s: np.ndarray
     scans: ScanSet
     intrinsics: Intrinsics
-    board: BoardSpec | None  # None when the intrinsics file does not say
+    board: BoardSpec | None  # None when the recording does not say
+    image_keys: list  # per image, what read_image takes
+    read_image: ImageReader
+
+    def load_image(self, k: int, color: bool = False) -> np.ndarray:
+        """Image ``k`` as 8-bit grey (H,W) or, with ``color``, BGR (H,W,3)."""
+        import cv2
+
+        image = self.read_image(self.image_keys[k], color)
+        if color and image.ndim == 2:
+            return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        if not color and image.ndim == 3:
+            return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        return image
+
+    def select(self, indices) -> CalibrationRecording:
+        """The recording with only the images ``indices`` (in that order); scans and intrinsics kept."""
+        idx = [int(i) for i in np.arange(len(self.image_names))[np.asarray(indices, dtype=int)]]
+        return replace(
+            self, image_names=[self.image_names[i] for i in idx], image_times_s=self.image_times_s[idx], image_keys=[self.image_keys[i] for i in idx]
+        )
 
 
 # ------------------------------------------------------------------ RADLOCC scans
@@ -233,7 +265,17 @@ def read_radlocc_recording(folder: str | Path) -> CalibrationRecording:
     missing = [p.name for p in paths if not p.is_file()]
     if missing:
         raise DatasetError(data, f"{len(missing)} of {len(paths)} images listed in camera.txt are missing (first: {missing[0]})")
-    return CalibrationRecording(paths, times, scans, intrinsics, board)
+    return CalibrationRecording([p.name for p in paths], times, scans, intrinsics, board, paths, read_image_file)
+
+
+def read_image_file(path: str | Path, color: bool = False) -> np.ndarray:
+    """An image file as 8-bit grey or, with ``color``, BGR; :class:`DatasetError` when OpenCV cannot read it."""
+    import cv2
+
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR if color else cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise DatasetError(path, "not a readable image")
+    return image
 
 
 # ------------------------------------------------------------------ pairing by time

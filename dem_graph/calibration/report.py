@@ -89,10 +89,7 @@ def write_calibration(result: CalibrationResult, recording: CalibrationRecording
     for k in range(len(result.views)):
         if k not in result.boards or pairs[k] < 0:
             continue
-        image = cv2.imread(str(recording.image_paths[k]), cv2.IMREAD_COLOR)
-        if image is None:
-            raise DatasetError(recording.image_paths[k], "not a readable image")
-        picture = draw_view(image, recording.scans.ranges_m[pairs[k]], recording.scans.angles_rad, result.on_board.get(k, np.zeros(0, int)), result, K, dist, k)
+        picture = draw_view(recording.load_image(k, color=True), recording.scans.ranges_m[pairs[k]], recording.scans.angles_rad, result.on_board.get(k, np.zeros(0, int)), result, K, dist, k)
         path = views_dir / f"view_{k:02d}.png"
         if not cv2.imwrite(str(path), picture):
             raise DatasetError(path, "cannot write the picture")

@@ -26,6 +26,7 @@ from __future__ import annotations
 import logging
 from collections import deque
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -94,6 +95,58 @@ def ranges_from_scan(msg) -> np.ndarray:
     return r
 
 
+@contextmanager
+def open_bag(path: str | Path) -> Iterator:
+    """An open ``rosbags`` AnyReader on the ROS 1 or ROS 2 bag at ``path``; a bag it cannot open is a
+    :class:`DatasetError` naming the path."""
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(path, "bag not found")
+    AnyReader = _anyreader()
+    try:
+        reader_cm = AnyReader([path])
+        reader = reader_cm.__enter__()
+    except MissingDependencyError:
+        raise
+    except Exception as exc:  # rosbags raises its own types for a bag it cannot read
+        raise DatasetError(path, f"cannot open the bag ({type(exc).__name__}: {' '.join(str(exc).split())})") from None
+    try:
+        yield reader
+    finally:
+        reader_cm.__exit__(None, None, None)
+
+
+def topic_where(path: str | Path, topic: str) -> str:
+    """How errors name a topic of a bag."""
+    return f"{path} topic {topic}"
+
+
+def check_topic(reader, path: str | Path, topic: str, types: tuple[str, ...]) -> str:
+    """The message type of ``topic``, which must be in the bag and one of ``types`` (else a :class:`DatasetError`)."""
+    connections = [c for c in reader.connections if c.topic == topic]
+    if not connections:
+        present = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
+        raise DatasetError(path, f"no topic {topic!r} in the bag (topics: {present})")
+    msgtype = connections[0].msgtype
+    if msgtype not in types:
+        raise DatasetError(topic_where(path, topic), f"has type {msgtype}, expected {' or '.join(types)}")
+    return msgtype
+
+
+def topic_messages(reader, topic: str, start_ns: int | None = None, stop_ns: int | None = None) -> Iterator[tuple[int, object]]:
+    """``(bag time ns, deserialised message)`` of ``topic`` in bag order, between ``start_ns`` and ``stop_ns`` (excluded) when given."""
+    connections = [c for c in reader.connections if c.topic == topic]
+    for connection, t_ns, raw in reader.messages(connections=connections, start=start_ns, stop=stop_ns):
+        yield t_ns, reader.deserialize(raw, connection.msgtype)
+
+
+def check_increasing(t_s: np.ndarray, where: str) -> None:
+    """A :class:`DatasetError` at ``where`` naming the first message whose stamp is not after the one before."""
+    i = first_not_increasing(t_s)
+    if i is not None:
+        raise DatasetError(where, f"message {i}: time {t_s[i]!r} is not after the previous {t_s[i - 1]!r}")
+
+
 def _pose_from_msg(pose) -> np.ndarray:
     q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w], dtype=float)
     return make_pose(matrix_from_quat_xyzw(q / np.linalg.norm(q)), [pose.position.x, pose.position.y, pose.position.z])
@@ -151,52 +204,29 @@ class RosbagSequence(Sequence):
     ):
         self.path = Path(path)
         self.name = self.path.stem
-        if not self.path.exists():
-            raise DatasetError(self.path, "bag not found")
         self._image_topic, self._scan_topic, self._odometry_topic = image_topic, scan_topic, odometry_topic
-        AnyReader = _anyreader()
-        try:
-            reader_cm = AnyReader([self.path])
-            reader = reader_cm.__enter__()
-        except MissingDependencyError:
-            raise
-        except Exception as exc:  # rosbags raises its own types for a bag it cannot read
-            raise DatasetError(self.path, f"cannot open the bag ({type(exc).__name__}: {' '.join(str(exc).split())})") from None
-        try:
-            self._image_type = self._check_topic(reader, image_topic, IMAGE_TYPES)
-            self._check_topic(reader, scan_topic, (SCAN_TYPE,))
+        with open_bag(self.path) as reader:
+            self._image_type = check_topic(reader, self.path, image_topic, IMAGE_TYPES)
+            check_topic(reader, self.path, scan_topic, (SCAN_TYPE,))
             if odometry_topic is not None:
-                self._check_topic(reader, odometry_topic, (ODOMETRY_TYPE,))
+                check_topic(reader, self.path, odometry_topic, (ODOMETRY_TYPE,))
             tree = self._read_tf(reader)
             rig = self._rig_with_tf(rig, tree, body_frame, camera_frame, laser_frame)
             self._rig = rig
             self._scan_t_s, self._scan_ranges = self._read_scans(reader)
             self._odometry = self._read_odometry(reader, tree, body_frame) if odometry_topic is not None else []
             self._frame_t_s = np.array([t for t, _ in self._iter_images(reader, decode=False)])
-        finally:
-            reader_cm.__exit__(None, None, None)
         firsts = [a[0] for a in (self._frame_t_s, self._scan_t_s) if len(a)] + [o.t_prev_s for o in self._odometry[:1]]
         self._t_start_s = float(min(firsts)) if firsts else 0.0
 
     # --------------------------------------------------------------------------------------------
 
     def _where(self, topic: str) -> str:
-        return f"{self.path} topic {topic}"
-
-    def _check_topic(self, reader, topic: str, types: tuple[str, ...]) -> str:
-        connections = [c for c in reader.connections if c.topic == topic]
-        if not connections:
-            present = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
-            raise DatasetError(self.path, f"no topic {topic!r} in the bag (topics: {present})")
-        msgtype = connections[0].msgtype
-        if msgtype not in types:
-            raise DatasetError(self._where(topic), f"has type {msgtype}, expected {' or '.join(types)}")
-        return msgtype
+        return topic_where(self.path, topic)
 
     def _messages(self, reader, topic: str):
-        connections = [c for c in reader.connections if c.topic == topic]
-        for connection, _, raw in reader.messages(connections=connections):
-            yield reader.deserialize(raw, connection.msgtype)
+        for _, msg in topic_messages(reader, topic):
+            yield msg
 
     def _read_tf(self, reader) -> TransformTree:
         tree = TransformTree()
@@ -278,9 +308,7 @@ class RosbagSequence(Sequence):
             yield t, (image_from_message(msg, self._image_type, where) if decode else None)
 
     def _check_increasing(self, t: np.ndarray, topic: str) -> None:
-        i = first_not_increasing(t)
-        if i is not None:
-            raise DatasetError(self._where(topic), f"message {i}: time {t[i]!r} is not after the previous {t[i - 1]!r}")
+        check_increasing(t, self._where(topic))
 
     # --------------------------------------------------------------------------------------------
 
@@ -308,8 +336,7 @@ class RosbagSequence(Sequence):
 
     def events(self) -> Iterator[Event]:
         """Odometry, scans and images merged by time (odometry, then laser, then camera at equal times)."""
-        AnyReader = _anyreader()
-        with AnyReader([self.path]) as reader:
+        with open_bag(self.path) as reader:
             # in the order of _frame_t_s; decoded here, not read ahead in a thread (base.read_ahead): the
             # ROS 2 bag's SQLite connection refuses to be used from another thread
             images = self._iter_images(reader)
@@ -326,4 +353,15 @@ class RosbagSequence(Sequence):
         return f"RosbagSequence({str(self.path)!r}, frames={len(self._frame_t_s)}, scans={len(self._scan_t_s)}, odometry={len(self._odometry)})"
 
 
-__all__ = ["RosbagSequence", "TransformTree", "image_from_message", "ranges_from_scan", "stamp_s"]
+__all__ = [
+    "RosbagSequence",
+    "TransformTree",
+    "check_increasing",
+    "check_topic",
+    "image_from_message",
+    "open_bag",
+    "ranges_from_scan",
+    "stamp_s",
+    "topic_messages",
+    "topic_where",
+]
