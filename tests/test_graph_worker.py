@@ -137,26 +137,44 @@ def test_a_failed_update_waits_for_a_restart(recorded, monkeypatch):
     np.testing.assert_allclose(restarted.points[7], X[7], atol=1e-9)
 
 
-def test_a_busy_graph_process_does_not_hold_up_the_frame(recorded):
-    """While the second process does not read (stopped here, as during a long update), sending
-    keyframes does not wait for it, even with the socket's buffer far smaller than the messages;
-    once it reads again every keyframe is smoothed, in order, exactly as when sent one at a time
-    (the keyframes arrive together, so only the final estimates are compared, to 0.5 mm: the
-    bound of the test above for keyframes smoothed together). Before the sending thread, a send
-    from the frame waited here for ever: the process, answering, waited for the frame to read."""
+def _stopped_graph(setup, max_queued: int) -> ProcessGraph:
+    """A graph process that does not read (stopped, as during a long update), behind a socket buffer
+    far smaller than the messages."""
+    graph = ProcessGraph(setup, max_queued=max_queued)
+    sock = socket.socket(fileno=os.dup(graph._conn.fileno()))
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+    sock.close()
+    os.kill(graph._process.pid, signal.SIGSTOP)
+    return graph
+
+
+def _send_all(graph: ProcessGraph, messages) -> tuple[threading.Thread, list]:
+    sent = []
+    thread = threading.Thread(target=lambda: [(graph.send(m), sent.append(m.k)) for m in messages], daemon=True)
+    thread.start()
+    return thread, sent
+
+
+@pytest.mark.parametrize("max_queued", [64, 8])
+def test_a_busy_graph_process_holds_up_the_frame_only_past_its_queue(recorded, max_queued):
+    """While the second process does not read, sends return at once until ``max_queued`` messages
+    wait, then wait for the process (a log replayed faster than the graph follows goes at its pace).
+    Once it reads again every keyframe is smoothed, in order, and the final estimates are those of
+    one-at-a-time smoothing to 0.5 mm (the keyframes arrive together: the bound of the test above).
+    Before the sending thread, the first send past the socket's buffer waited here for ever: the
+    process, answering, waited for the frame to read."""
     setup, messages, expected = recorded
-    graph = ProcessGraph(setup)
-    pid = graph._process.pid
+    graph = _stopped_graph(setup, max_queued)
     try:
-        sock = socket.socket(fileno=os.dup(graph._conn.fileno()))
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
-        sock.close()
-        os.kill(pid, signal.SIGSTOP)
-        sender = threading.Thread(target=lambda: [graph.send(m) for m in messages], daemon=True)
-        sender.start()
-        sender.join(10.0)
-        assert not sender.is_alive(), "send waited for the stopped graph process"
-        os.kill(pid, signal.SIGCONT)
+        thread, sent = _send_all(graph, messages)
+        thread.join(2.0 if max_queued < len(messages) else 10.0)
+        if max_queued >= len(messages):
+            assert not thread.is_alive(), "send waited for the stopped graph process"
+        else:
+            assert thread.is_alive() and max_queued <= len(sent) <= max_queued + 2  # + the one in the socket
+        os.kill(graph._process.pid, signal.SIGCONT)
+        thread.join(30.0)
+        assert not thread.is_alive() and len(sent) == len(messages)
         pending, (poses, points) = graph.finish()
         assert [r.failure for r in pending if r.failure] == []
         assert pending[-1].k == messages[-1].k
@@ -165,7 +183,7 @@ def test_a_busy_graph_process_does_not_hold_up_the_frame(recorded):
         for k in want.poses:
             np.testing.assert_allclose(poses[k][:3, 3], want.poses[k][:3, 3], atol=5e-4)
     finally:
-        os.kill(pid, signal.SIGCONT)
+        os.kill(graph._process.pid, signal.SIGCONT)
         graph._process.kill()  # (a send still waiting, as before the fix, would wait for ever)
         graph.close()
 

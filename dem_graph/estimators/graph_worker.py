@@ -254,9 +254,12 @@ class ProcessGraph:
     during a long one (the window's cut, a relinearisation) the socket's buffer fills after a few
     keyframes, and a send from the frame's own thread would wait for the update to end (frames of
     0.3-2 s at 400 points). The thread waits instead; the process then takes everything that has
-    arrived as one update."""
+    arrived as one update. Only when ``max_queued`` messages wait for the socket does :meth:`send`
+    wait too (taking the results that arrive meanwhile, so neither side waits on the other): a log
+    replayed faster than the graph can follow then goes at the graph's pace rather than leaving it
+    ever further behind."""
 
-    def __init__(self, setup: GraphSetup):
+    def __init__(self, setup: GraphSetup, max_queued: int = 32):
         ours, theirs = socket.socketpair()
         try:
             self._process = subprocess.Popen([sys.executable, "-m", __name__, str(theirs.fileno())], pass_fds=(theirs.fileno(),))
@@ -267,7 +270,9 @@ class ProcessGraph:
             theirs.close()
         self._conn = Connection(ours.detach())
         self._conn.send(setup)
+        self.max_queued = max_queued
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._early: list[GraphResult] = []  # results taken while send waited
         self._send_failed = threading.Event()
         self._sender = threading.Thread(target=self._send_loop, name="graph-sender", daemon=True)
         self._sender.start()
@@ -281,11 +286,17 @@ class ProcessGraph:
                 return
 
     def send(self, message) -> None:
-        """Queue ``message`` for the second process; returns at once, whatever the process is doing."""
-        if self._send_failed.is_set():  # a broken pipe: the process has ended; its last words, if any, explain why
-            while not self._conn.closed and self._conn.poll():
-                self._receive()
-            raise DemGraphError("the graph process ended unexpectedly")
+        """Queue ``message`` for the second process; returns at once unless ``max_queued`` messages
+        are still waiting for the socket."""
+        while True:
+            if self._send_failed.is_set():  # a broken pipe: the process has ended; its last words, if any, explain why
+                while not self._conn.closed and self._conn.poll():
+                    self._receive()
+                raise DemGraphError("the graph process ended unexpectedly")
+            if self._outbox.qsize() < self.max_queued:
+                break
+            self._early.extend(self._arrived())
+            time.sleep(0.001)
         self._outbox.put(message)
 
     def _receive(self):
@@ -297,17 +308,21 @@ class ProcessGraph:
             raise DemGraphError(payload)
         return kind, payload
 
-    def results(self) -> list[GraphResult]:
-        """The results that have arrived (none after :meth:`finish`, which takes them all)."""
+    def _arrived(self) -> list[GraphResult]:
         out = []
         while not self._conn.closed and self._conn.poll():
             out.append(self._receive()[1])
         return out
 
+    def results(self) -> list[GraphResult]:
+        """The results that have arrived (none after :meth:`finish`, which takes them all)."""
+        out, self._early = self._early + self._arrived(), []
+        return out
+
     def finish(self) -> tuple[list[GraphResult], tuple[dict[int, np.ndarray], dict[int, np.ndarray]]]:
         """The results not yet taken, and the final estimates once every message sent has been applied."""
         self.send("finish")
-        pending = []
+        pending, self._early = self._early, []
         while True:
             kind, payload = self._receive()
             if kind == "final":
