@@ -123,6 +123,7 @@ def _pop_dataset_options(kwargs: dict) -> dict:
 @click.option("--lag", "lag_s", type=float, default=None, help="isam2: fixed lag of the smoother, seconds.")
 @click.option("--keyframe-every", type=int, default=None, help="isam2: a keyframe every this many frames (1: every frame); isam2-batch: the same for its online pass [default: 1 for isam2, 5 for isam2-batch].")
 @click.option("--graph-process", is_flag=True, help="isam2: run the graph in a second process, on another core (faster frames; results depend on the timing).")
+@click.option("--realtime", is_flag=True, help="Give the estimator each event when its time has come on the wall clock, as the sensors would live (a run takes the log's duration at least).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Run folder to write.")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="YAML run configuration (see config.yaml of a run).")
 @click.option("--max-points", type=int, default=None, help="Cap n on live points.")
@@ -130,7 +131,7 @@ def _pop_dataset_options(kwargs: dict) -> dict:
 @click.option("--max-frames", type=int, default=None, help="Stop after this many camera frames.")
 @_dataset_options
 @_friendly_errors
-def run(dataset, estimator, lag_s, keyframe_every, graph_process, out_dir, config_path, max_points, no_odometry, max_frames, **kwargs) -> None:
+def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_dir, config_path, max_points, no_odometry, max_frames, **kwargs) -> None:
     """Run an estimator over a dataset (folder, KITTI or ROS bag); write trajectory.tum, points.ply, metrics.json, config.yaml
     (isam2 also trajectory_smoothed.tum; isam2-batch also trajectory_online.tum)."""
     from dem_graph.run import load_run_config, run_estimator, summary_lines, write_run
@@ -138,7 +139,7 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, out_dir, confi
     sequence = _open_dataset(dataset, **_pop_dataset_options(kwargs))
     config = load_run_config(
         config_path, estimator=estimator, max_points=max_points, no_odometry=no_odometry, max_frames=max_frames, lag_s=lag_s, keyframe_every=keyframe_every,
-        graph_process=graph_process, dataset_settings=sequence.run_settings(),
+        graph_process=graph_process, dataset_settings=sequence.run_settings(), realtime=realtime,
     )
     result = run_estimator(sequence, config)
     result.metrics["dataset"] = str(Path(dataset).resolve())
@@ -244,8 +245,14 @@ def compare(dataset, out_dir, estimators, max_frames, config_path, **kwargs) -> 
 @click.option("--scenario", "scenario_name", default="demo", show_default=True, help="Simulated scenario to replay.")
 @click.option("--frames", type=int, default=150, show_default=True, help="Camera frames per run (1550 or more: also the cost at frame 1500 over frame 150).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also draw the paper's Fig. 12 (time per frame against live points) into this PNG.")
+@click.option(
+    "--realtime/--as-fast-as-possible",
+    default=True,
+    show_default=True,
+    help="Feed the frames at the camera's rate, as on the vehicle, or as fast as each estimator takes them (the graph in a second process then falls behind and the front end waits for it).",
+)
 @_friendly_errors
-def bench(estimators, points, scenario_name, frames, plot_path) -> None:
+def bench(estimators, points, scenario_name, frames, plot_path, realtime) -> None:
     """Benchmark the estimators: time per frame against the number of points, tracking included."""
     from dem_graph.evaluation.bench_estimators import BENCH_ESTIMATORS, bench_estimators
 
@@ -261,7 +268,7 @@ def bench(estimators, points, scenario_name, frames, plot_path) -> None:
         raise click.BadParameter(f"unknown estimator {', '.join(unknown) or '(none given)'}: choose from {', '.join(BENCH_ESTIMATORS)}", param_hint="--estimators")
     if plot_path is not None and plot_path.suffix.lower() != ".png":
         raise click.BadParameter(f"the plot is a PNG: {plot_path}", param_hint="--plot")
-    result = bench_estimators(names, counts, scenario_name, frames)
+    result = bench_estimators(names, counts, scenario_name, frames, realtime=realtime)
     click.echo(result.table())
     if plot_path is not None:
         from dem_graph.viz.bench_figure import time_per_frame_figure

@@ -47,6 +47,11 @@ class RunConfig(SharedSettings):
     ekf: EkfOptions = Field(default_factory=EkfOptions, description="EKF baselines (gm, ptpm)")
     isam2: Isam2Options = Field(default_factory=Isam2Options, description="the graph estimator (isam2, isam2-batch)")
     max_frames: int | None = Field(None, ge=1, description="stop after this many camera frames")
+    realtime: bool = Field(
+        False,
+        description="give each event to the estimator when its time since the first event has passed on the wall clock, as the sensors would on the "
+        "vehicle; false: as fast as the estimator takes them. Matters with isam2.graph_process, whose graph then keeps up as it would live",
+    )
     blas_threads: int = Field(
         1,
         ge=1,
@@ -76,12 +81,21 @@ class RunResult:
     dem: RunDem | None = None  # the dense DEM from the run's poses (None if it could not be made)
 
 
-def feed(estimator: Estimator, sequence: Sequence, max_frames: int | None = None, finish: bool = True) -> Iterator[int]:
+def feed(estimator: Estimator, sequence: Sequence, max_frames: int | None = None, finish: bool = True, realtime: bool = False) -> Iterator[int]:
     """Give the sequence's events to ``estimator`` in time order (with a progress bar), up to
     ``max_frames`` camera frames, then call its ``finish`` (unless ``finish`` is false). Yields the
-    number of camera frames given so far after each one."""
+    number of camera frames given so far after each one. With ``realtime`` an event is given no
+    sooner than its time after the first event's has passed on the wall clock (an estimator that
+    falls behind gets the next one at once, as from a sensor's buffer)."""
     frames = 0
+    t0_s = wall0_s = None
     for event in progress(sequence.events(), total=sequence.event_count(), desc=estimator.name, unit="event"):
+        if realtime:
+            if t0_s is None:
+                t0_s, wall0_s = event.t_s, time.perf_counter()
+            wait_s = (event.t_s - t0_s) - (time.perf_counter() - wall0_s)
+            if wait_s > 0:
+                time.sleep(wait_s)
         if isinstance(event, CameraFrame):
             estimator.on_frame(event)
             frames += 1
@@ -118,7 +132,7 @@ def run_estimator(sequence: Sequence, config: RunConfig | None = None, with_dem:
     frames = 0
     try:
         with threadpool_limits(limits=config.blas_threads, user_api="blas"):
-            for frames in feed(estimator, sequence, config.max_frames):  # noqa: B007 - read in the handler below
+            for frames in feed(estimator, sequence, config.max_frames, realtime=config.realtime):  # noqa: B007 - read in the handler below
                 pass
     except DemGraphError as exc:
         error = str(exc)
@@ -190,6 +204,7 @@ def load_run_config(
     keyframe_every: int | None = None,
     graph_process: bool = False,
     dataset_settings: dict | None = None,
+    realtime: bool = False,
 ) -> RunConfig:
     """The run configuration: defaults, then the dataset's own settings (:meth:`Sequence.run_settings`),
     then the YAML file at ``path``, then the given overrides."""
@@ -225,6 +240,8 @@ def load_run_config(
                 config.isam2.keyframe_every = keyframe_every
         if graph_process:
             config.isam2.graph_process = True
+        if realtime:
+            config.realtime = True
     except ValidationError as exc:
         raise ConfigError(f"invalid run configuration: {format_validation_error(exc)}", path) from None
     return config

@@ -252,14 +252,12 @@ class ProcessGraph:
 
     Messages leave through a thread of their own: the second process reads only between updates, so
     during a long one (the window's cut, a relinearisation) the socket's buffer fills after a few
-    keyframes, and a send from the frame's own thread would wait for the update to end (frames of
-    0.3-2 s at 400 points). The thread waits instead; the process then takes everything that has
-    arrived as one update. Only when ``max_queued`` messages wait for the socket does :meth:`send`
-    wait too (taking the results that arrive meanwhile, so neither side waits on the other): a log
-    replayed faster than the graph can follow then goes at the graph's pace rather than leaving it
-    ever further behind."""
+    keyframes, and a send from the frame's own thread used to wait there while the process, answering
+    with a result larger than the buffer, waited for the frame to read. Now :meth:`send` waits only to
+    keep the front end within ``max_lag`` keyframes of the graph's newest result, and takes the results
+    that arrive meanwhile."""
 
-    def __init__(self, setup: GraphSetup, max_queued: int = 32):
+    def __init__(self, setup: GraphSetup, max_lag: int = 10):
         ours, theirs = socket.socketpair()
         try:
             self._process = subprocess.Popen([sys.executable, "-m", __name__, str(theirs.fileno())], pass_fds=(theirs.fileno(),))
@@ -270,7 +268,8 @@ class ProcessGraph:
             theirs.close()
         self._conn = Connection(ours.detach())
         self._conn.send(setup)
-        self.max_queued = max_queued
+        self.max_lag = max_lag
+        self._answered_k = -1  # the newest keyframe a result has answered (keyframes count from 0)
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()
         self._early: list[GraphResult] = []  # results taken while send waited
         self._send_failed = threading.Event()
@@ -286,14 +285,15 @@ class ProcessGraph:
                 return
 
     def send(self, message) -> None:
-        """Queue ``message`` for the second process; returns at once unless ``max_queued`` messages
-        are still waiting for the socket."""
+        """Queue ``message`` for the second process; a keyframe more than ``max_lag`` after the one the
+        graph last answered first waits for the graph's results."""
+        k = message.k if isinstance(message, KeyframeMessage) else None
         while True:
             if self._send_failed.is_set():  # a broken pipe: the process has ended; its last words, if any, explain why
                 while not self._conn.closed and self._conn.poll():
                     self._receive()
                 raise DemGraphError("the graph process ended unexpectedly")
-            if self._outbox.qsize() < self.max_queued:
+            if k is None or k - self._answered_k <= self.max_lag:
                 break
             self._early.extend(self._arrived())
             time.sleep(0.001)
@@ -312,6 +312,7 @@ class ProcessGraph:
         out = []
         while not self._conn.closed and self._conn.poll():
             out.append(self._receive()[1])
+            self._answered_k = max(self._answered_k, out[-1].k)
         return out
 
     def results(self) -> list[GraphResult]:

@@ -100,6 +100,12 @@ class Isam2Options(StrictModel):
         description="run the graph (iSAM2 updates, the window's cut, marginals) in a second process, on another core: a frame then costs the front end's time, "
         "and the graph's results reach the front end one or more keyframes later (a run then depends on the timing); false: each keyframe's update ends in its own frame",
     )
+    graph_max_lag: int = Field(
+        10,
+        ge=1,
+        description="graph_process: keyframes the front end may run ahead of the graph's newest result before a frame waits for it; "
+        "more keep frames short while an update runs long, at the price of later corrections (a log replayed faster than the graph follows drifts more)",
+    )
     batch_keyframe_every: int = Field(
         5,
         ge=1,
@@ -188,7 +194,7 @@ class Isam2Slam(FrameDrivenEstimator):
             self.T.copy(), P0, self.t_s, c.lag_s, c.relinearize_threshold, c.relinearize_skip, c.marginalize_every_s, c.optimizer,
             rig.camera_model, np.array(rig.T_body_cam, dtype=float), c.frontend.camera_point_sigma_px, c.split_link_sigma_m, c.robust,
         )  # fmt: skip
-        self._graph = ProcessGraph(setup) if c.graph_process else InProcessGraph(setup)
+        self._graph = ProcessGraph(setup, c.graph_max_lag) if c.graph_process else InProcessGraph(setup)
         # what the front end knows of the graph: every keyframe's time and the latest estimates of
         # keyframes and landmarks
         self.keyframe_t_s: list[float] = [self.t_s]
