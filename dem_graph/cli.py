@@ -273,7 +273,7 @@ def bench(estimators, points, scenario_name, frames, plot_path, realtime) -> Non
     if plot_path is not None:
         from dem_graph.viz.bench_figure import time_per_frame_figure
 
-        figure = time_per_frame_figure(plot_path, result.rows, f"'{result.scenario}' {result.image_size}, {result.frames} frames, on {result.machine}")
+        figure = time_per_frame_figure(plot_path, result.rows, f"'{result.scenario}' {result.image_size}, {result.frames} frames {'at the camera rate' if result.realtime else 'as fast as possible'}, on {result.machine}")
         click.echo(f"plot: {figure.path}")
 
 
