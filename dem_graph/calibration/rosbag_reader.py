@@ -34,7 +34,7 @@ from dem_graph.datasets.rosbag import (
     check_topic,
     image_from_message,
     open_bag,
-    ranges_from_scan,
+    read_scan_topic,
     stamp_s,
     topic_messages,
     topic_where,
@@ -94,26 +94,10 @@ def _read_camera_info(reader, where: str, topic: str) -> Intrinsics:
 
 
 def _read_scans(reader, where: str, topic: str) -> ScanSet:
-    times, ranges, layout = [], [], None
-    for i, (_, msg) in enumerate(topic_messages(reader, topic)):
-        r = ranges_from_scan(msg)
-        a_min, a_inc = float(msg.angle_min), float(msg.angle_increment)
-        if layout is None:
-            if not (np.isfinite(a_min) and np.isfinite(a_inc)) or a_inc <= 0 or len(r) < 2:
-                raise DatasetError(where, f"scan 0 has {len(r)} beams from {a_min} rad every {a_inc} rad: not a scan")
-            layout = (a_min, a_inc, len(r))
-        elif len(r) != layout[2] or not np.isclose(a_min, layout[0], rtol=0, atol=1e-5) or not np.isclose(a_inc, layout[1], rtol=1e-5, atol=0):
-            raise DatasetError(
-                where,
-                f"scan {i} has {len(r)} beams from {a_min:.6f} rad every {a_inc:.6f} rad; scan 0 has {layout[2]} from {layout[0]:.6f} every {layout[1]:.6f}",
-            )
-        times.append(stamp_s(msg.header))
-        ranges.append(r)
+    t_s, ranges, layout = read_scan_topic(reader, topic, where)
     if layout is None:
         raise DatasetError(where, "no LaserScan message")
-    t_s = np.array(times)
-    check_increasing(t_s, where)
-    return ScanSet(t_s, layout[0], layout[1], np.stack(ranges).astype(float))
+    return ScanSet(t_s, layout[0], layout[1], ranges.astype(float))
 
 
 def _list_images(reader, where: str, topic: str, intrinsics: Intrinsics) -> tuple[np.ndarray, list[tuple[int, int, float]]]:

@@ -147,6 +147,31 @@ def check_increasing(t_s: np.ndarray, where: str) -> None:
         raise DatasetError(where, f"message {i}: time {t_s[i]!r} is not after the previous {t_s[i - 1]!r}")
 
 
+def read_scan_topic(reader, topic: str, where: str, layout: tuple[float, float, int] | None = None, layout_name: str = "scan 0") -> tuple[np.ndarray, np.ndarray, tuple[float, float, int] | None]:
+    """Every LaserScan of ``topic``: stamps (s, increasing), ranges (S, B; NaN where no return) and the
+    beam layout ``(angle_min_rad, angle_increment_rad, count)``. Every scan must have ``layout`` (named
+    ``layout_name`` in the error), or when it is None the first scan's; else a :class:`DatasetError` at ``where``."""
+    times, ranges = [], []
+    for _, msg in topic_messages(reader, topic):
+        r = ranges_from_scan(msg)
+        a_min, a_inc = float(msg.angle_min), float(msg.angle_increment)
+        if layout is None:
+            if not (np.isfinite(a_min) and np.isfinite(a_inc)) or a_inc <= 0 or len(r) < 2:
+                raise DatasetError(where, f"scan 0 has {len(r)} beams from {a_min} rad every {a_inc} rad: not a scan")
+            layout = (a_min, a_inc, len(r))
+        elif len(r) != layout[2] or not np.isclose(a_min, layout[0], rtol=0, atol=1e-5) or not np.isclose(a_inc, layout[1], rtol=1e-5, atol=0):
+            raise DatasetError(
+                where,
+                f"scan {len(times)} has {len(r)} beams from {a_min:.6f} rad every {a_inc:.6f} rad; "
+                f"{layout_name} has {layout[2]} from {layout[0]:.6f} every {layout[1]:.6f}",
+            )
+        times.append(stamp_s(msg.header))
+        ranges.append(r)
+    t_s = np.array(times)
+    check_increasing(t_s, where)
+    return t_s, (np.stack(ranges) if ranges else np.zeros((0, layout[2] if layout else 0), dtype=np.float32)), layout
+
+
 def _pose_from_msg(pose) -> np.ndarray:
     q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w], dtype=float)
     return make_pose(matrix_from_quat_xyzw(q / np.linalg.norm(q)), [pose.position.x, pose.position.y, pose.position.z])
@@ -261,22 +286,9 @@ class RosbagSequence(Sequence):
         where = self._where(self._scan_topic)
         if not isinstance(beams, PlanarBeams):
             raise DatasetError(where, "a LaserScan needs the rig's laser to have planar beams")
-        times, ranges = [], []
-        for msg in self._messages(reader, self._scan_topic):
-            r = ranges_from_scan(msg)
-            if len(r) != beams.count or not np.isclose(msg.angle_min, beams.angle_min_rad, rtol=0, atol=1e-5) or not np.isclose(
-                msg.angle_increment, beams.angle_increment_rad, rtol=1e-5, atol=0
-            ):
-                raise DatasetError(
-                    where,
-                    f"scan {len(times)} has {len(r)} beams from {msg.angle_min:.6f} rad every {msg.angle_increment:.6f} rad; "
-                    f"the rig's laser has {beams.count} from {beams.angle_min_rad:.6f} every {beams.angle_increment_rad:.6f}",
-                )
-            times.append(stamp_s(msg.header))
-            ranges.append(r)
-        t = np.array(times)
-        self._check_increasing(t, self._scan_topic)
-        return t, (np.stack(ranges) if ranges else np.zeros((0, beams.count), dtype=np.float32))
+        layout = (beams.angle_min_rad, beams.angle_increment_rad, beams.count)
+        t, ranges, _ = read_scan_topic(reader, self._scan_topic, where, layout, "the rig's laser")
+        return t, ranges
 
     def _read_odometry(self, reader, tree: TransformTree, body: str | None) -> list[Odometry]:
         spec = self._rig.odometry or OdometrySpec()
@@ -361,6 +373,7 @@ __all__ = [
     "image_from_message",
     "open_bag",
     "ranges_from_scan",
+    "read_scan_topic",
     "stamp_s",
     "topic_messages",
     "topic_where",

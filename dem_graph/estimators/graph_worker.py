@@ -295,8 +295,8 @@ class ProcessGraph:
                 raise DemGraphError("the graph process ended unexpectedly")
             if k is None or k - self._answered_k <= self.max_lag:
                 break
+            self._conn.poll(0.05)  # until a result comes (at most 50 ms: the sending thread may have failed meanwhile)
             self._early.extend(self._arrived())
-            time.sleep(0.001)
         self._outbox.put(message)
 
     def _receive(self):
