@@ -1,7 +1,7 @@
 # Two commands do everything on a fresh Debian/Ubuntu machine with Python >= 3.10:
 #   make demo   set up, simulate the default scenario (dataset + picture), compare GM, PTPM, iSAM2 and iSAM2-batch on it
 #               (one table, run folders and a report under out/demo/compare/)
-#   make test   set up, then run the test suite
+#   make test   set up, check the import layers (pyproject.toml), then run the test suite
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
@@ -14,6 +14,7 @@ demo: setup
 	$(BIN)/dem-graph compare $(OUT)/demo/dataset --estimators gm,ptpm,isam2,isam2-batch --out $(OUT)/demo/compare
 
 test: setup
+	$(BIN)/lint-imports --no-logo
 	$(BIN)/python -m pytest -q
 
 bench: setup

@@ -80,11 +80,17 @@ def simulate(scenario_name, seed, length_m, speed_mps, no_odometry, out_dir, ove
         click.echo(f"picture: {result.preview_png}")
 
 
+def _dataset_options_of(options: dict):
+    from dem_graph.datasets.open import DatasetOptions
+
+    return DatasetOptions(**{k: v for k, v in options.items() if v is not None})
+
+
 def _open_dataset(path: Path, fmt: str | None = None, **options):
     """The dataset at ``path``: a dataset folder, KITTI (either layout) or a ROS bag (told from the path unless ``fmt``)."""
-    from dem_graph.datasets.open import DatasetOptions, open_dataset
+    from dem_graph.datasets.open import open_dataset
 
-    return open_dataset(path, fmt, DatasetOptions(**{k: v for k, v in options.items() if v is not None}))
+    return open_dataset(path, fmt, _dataset_options_of(options))
 
 
 _DATASET_OPTIONS = (
@@ -134,20 +140,19 @@ def _pop_dataset_options(kwargs: dict) -> dict:
 def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_dir, config_path, max_points, no_odometry, max_frames, **kwargs) -> None:
     """Run an estimator over a dataset (folder, KITTI or ROS bag); write trajectory.tum, points.ply, metrics.json, config.yaml
     (isam2 also trajectory_smoothed.tum; isam2-batch also trajectory_online.tum)."""
-    from dem_graph.run import load_run_config, run_estimator, summary_lines, write_run
+    from dem_graph.pipeline.config import RunOverrides
+    from dem_graph.pipeline.metrics import summary_lines
+    from dem_graph.pipeline.run import run_dataset
 
-    sequence = _open_dataset(dataset, **_pop_dataset_options(kwargs))
-    config = load_run_config(
-        config_path, estimator=estimator, max_points=max_points, no_odometry=no_odometry, max_frames=max_frames, lag_s=lag_s, keyframe_every=keyframe_every,
-        graph_process=graph_process, dataset_settings=sequence.run_settings(), realtime=realtime,
+    fmt = kwargs.pop("fmt")
+    overrides = RunOverrides(
+        estimator=estimator, max_frames=max_frames, max_points=max_points, no_odometry=no_odometry, lag_s=lag_s,
+        keyframe_every=keyframe_every, graph_process=graph_process, realtime=realtime,
     )
-    result = run_estimator(sequence, config)
-    result.metrics["dataset"] = str(Path(dataset).resolve())
-    result.metrics["dataset_options"] = sequence.open_options()
-    paths = write_run(result, out_dir)
-    for line in summary_lines(result):
+    result = run_dataset(dataset, overrides, config_path, out_dir, _dataset_options_of(kwargs), fmt)
+    for line in summary_lines(result.metrics):
         click.echo(line)
-    click.echo(f"run folder: {out_dir} ({', '.join(p.name for p in paths.values())})")
+    click.echo(f"run folder: {out_dir} ({', '.join(p.name for p in result.paths.values())})")
     if result.error:
         click.echo(f"dem-graph: error: {result.error} (results up to there were written)", err=True)
         sys.exit(2)
@@ -163,10 +168,8 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_
 def dem(run_dir, dataset, at_s, resolution_m, out_dir) -> None:
     """Make a run's DEM again from its poses (global, or the local map at a time)."""
     from dem_graph.datasets.open import reopen_dataset
-    from dem_graph.dem.pipeline import run_folder_dem
     from dem_graph.errors import DatasetError
-    from dem_graph.evaluation.evaluate import METRICS_JSON, read_run_metrics
-    from dem_graph.run import run_folder_config
+    from dem_graph.pipeline.run_folder import METRICS_JSON, read_run_metrics, run_folder_config, run_folder_dem, write_run_dem
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -181,9 +184,9 @@ def dem(run_dir, dataset, at_s, resolution_m, out_dir) -> None:
     if resolution_m is not None:
         config.dem.fusion.resolution_m = resolution_m
     sequence = reopen_dataset(Path(dataset), recorded.get("dataset_options"))  # the run's KITTI ring, ...
-    result = run_folder_dem(run_dir, sequence, at_s, config.dem, config.frontend.focus)
+    result = run_folder_dem(run_dir, sequence, at_s, config)
     out_dir = out_dir or (run_dir if at_s is None else run_dir / f"dem_at_{at_s:g}")
-    paths = result.write(out_dir)
+    paths = write_run_dem(result, out_dir)
     m = result.metrics
     click.echo(f"DEM ({result.dem.frame}): {m['covered_cells']} cells of {config.dem.fusion.resolution_m:g} m covered")
     if "height_error_laser_cells" in m:
@@ -200,7 +203,7 @@ def dem(run_dir, dataset, at_s, resolution_m, out_dir) -> None:
 def evaluate(run_dir, dataset, out_path) -> None:
     """The metrics of a run folder against the ground truth: ATE (anchored, aligned), drift, RPE over
     10 m, the DEM's height errors and coverage, the Fig. 8 local error; time and points per frame."""
-    from dem_graph.evaluation.evaluate import EVALUATION_JSON, evaluate_run
+    from dem_graph.studies.evaluate import EVALUATION_JSON, evaluate_run
 
     result = evaluate_run(run_dir, _open_dataset(dataset))
     path = result.write_json(out_path or Path(run_dir) / EVALUATION_JSON)
@@ -219,13 +222,13 @@ def evaluate(run_dir, dataset, out_path) -> None:
 def compare(dataset, out_dir, estimators, max_frames, config_path, **kwargs) -> None:
     """Run the estimators on the same data and settings; print one table, write each run into
     OUT/<estimator>/, OUT/summary.json, OUT/report.md and a self-contained OUT/report.html."""
-    from dem_graph.evaluation.compare import compare as run_comparison
-    from dem_graph.evaluation.compare import parse_estimators
-    from dem_graph.run import load_run_config
+    from dem_graph.pipeline.config import RunOverrides, run_config
+    from dem_graph.studies.compare import compare as run_comparison
+    from dem_graph.studies.compare import parse_estimators
 
     names = parse_estimators(estimators)
     sequence = _open_dataset(dataset, **_pop_dataset_options(kwargs))
-    config = load_run_config(config_path, max_frames=max_frames, dataset_settings=sequence.run_settings())
+    config = run_config(sequence, config_path, RunOverrides(max_frames=max_frames))
     result = run_comparison(sequence, out_dir, names, config, dataset=Path(dataset).resolve())
     click.echo(result.table())
     click.echo(f"report: {result.paths['report_html']} (and report.md); summary: {result.paths['summary']}")
@@ -254,7 +257,7 @@ def compare(dataset, out_dir, estimators, max_frames, config_path, **kwargs) -> 
 @_friendly_errors
 def bench(estimators, points, scenario_name, frames, plot_path, realtime) -> None:
     """Benchmark the estimators: time per frame against the number of points, tracking included."""
-    from dem_graph.evaluation.bench_estimators import BENCH_ESTIMATORS, bench_estimators
+    from dem_graph.studies.bench_estimators import BENCH_ESTIMATORS, bench_estimators
 
     try:
         counts = tuple(int(x) for x in points.split(",") if x.strip())
@@ -285,8 +288,8 @@ def bench(estimators, points, scenario_name, frames, plot_path, realtime) -> Non
 @_friendly_errors
 def bench_dem_command(dataset, run_dir, n_points, repeats) -> None:
     """Benchmark the DEM: fusion throughput and the time to rebuild a whole run's DEM."""
-    from dem_graph.dem.build import load_run_poses
-    from dem_graph.evaluation.bench_dem import bench_dem
+    from dem_graph.pipeline.run_folder import load_run_poses
+    from dem_graph.studies.bench_dem import bench_dem
 
     sequence = _open_dataset(dataset) if dataset is not None else None
     poses = load_run_poses(run_dir) if run_dir is not None else None
@@ -301,11 +304,11 @@ def bench_dem_command(dataset, run_dir, n_points, repeats) -> None:
 def track_noise(dataset, max_frames, config_path) -> None:
     """Measure the front end's tracking error on a simulated dataset: its size, its correlation from
     frame to frame, and the frontend.sigma_px that matches them."""
-    from dem_graph.evaluation.tracking_noise import measure_tracking_noise
-    from dem_graph.run import load_run_config
+    from dem_graph.pipeline.config import run_config
+    from dem_graph.studies.tracking_noise import measure_tracking_noise
 
     sequence = _open_dataset(dataset)
-    click.echo(measure_tracking_noise(sequence, max_frames, load_run_config(config_path, dataset_settings=sequence.run_settings())).table())
+    click.echo(measure_tracking_noise(sequence, max_frames, run_config(sequence, config_path)).table())
 
 
 @main.command("bench-sim")
@@ -315,7 +318,7 @@ def track_noise(dataset, max_frames, config_path) -> None:
 @_friendly_errors
 def bench_sim(scenario_name, n_frames, skip_full) -> None:
     """Benchmark the simulator: render and laser throughput, and the time to simulate a scenario."""
-    from dem_graph.sim.bench import bench_sim as run
+    from dem_graph.studies.bench_sim import bench_sim as run
 
     click.echo(run(scenario_name, n_frames=n_frames, full=not skip_full).table())
 

@@ -7,8 +7,8 @@ import pytest
 from click.testing import CliRunner
 
 from dem_graph.cli import main
-from dem_graph.evaluation.bench_estimators import BenchRow
 from dem_graph.evaluation.timing import TimingStats
+from dem_graph.studies.bench_estimators import BenchRow
 from dem_graph.viz.bench_figure import FRAME_BUDGET_MS, time_per_frame_figure
 
 # a known table: (estimator, cap, live points, median ms, p95 ms), rows out of order on purpose

@@ -48,7 +48,7 @@ def test_realtime_replay_takes_the_logs_time_and_gives_the_same_run(smoke_log):
 
     import numpy as np
 
-    from dem_graph.run import RunConfig, run_estimator
+    from dem_graph.pipeline import RunConfig, run_estimator
 
     runs, walls = {}, {}
     for realtime in (False, True):

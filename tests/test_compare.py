@@ -13,10 +13,10 @@ from click.testing import CliRunner
 from dem_graph.cli import main
 from dem_graph.datasets import FolderSequence
 from dem_graph.errors import DemGraphError
-from dem_graph.evaluation import compare as compare_module
-from dem_graph.evaluation.compare import compare, parse_estimators
-from dem_graph.evaluation.headline import COLUMNS, format_value, headline, metric_at
-from dem_graph.run import ESTIMATORS, RunConfig
+from dem_graph.pipeline import ESTIMATORS, RunConfig
+from dem_graph.studies import compare as compare_module
+from dem_graph.studies.compare import compare, parse_estimators
+from dem_graph.studies.headline import COLUMNS, format_value, headline, metric_at
 
 N_FIGURES = 4  # trajectories, position error, Fig. 8 local error, best DEM and its error
 

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from dem_graph.dem.fusion import FusionConfig, fuse
-from dem_graph.dem.layers import Dem
 from dem_graph.dem.returns import LASER, MAP_POINT, GroundReturns, PoseTrack, laser_returns_world
 from dem_graph.dem.traversability import traversability
 from dem_graph.dem.views import global_dem, local_dem, local_frame
@@ -19,6 +18,7 @@ from dem_graph.geometry.grid import ElevationGrid, GridGeometry
 from dem_graph.geometry.lie import retract
 from dem_graph.geometry.rig import default_rig
 from dem_graph.geometry.se3 import make_pose, rotation_from_rpy
+from dem_graph.io.dem_files import read_dem_npz
 
 RANGE_SIGMA_M = 0.02  # the default rig's laser
 
@@ -241,7 +241,7 @@ def test_the_local_map_is_in_the_heading_frame_and_only_holds_what_was_known_the
 def test_a_cell_centre_in_the_geotiff_maps_to_its_world_xy(tmp_path):
     import rasterio
 
-    from dem_graph.dem.export import write_dem_outputs
+    from dem_graph.pipeline.run_folder import write_dem_outputs
 
     geometry = GridGeometry(100.0, 50.0, 0.2, 20, 30)
     x, y, z = 103.33, 47.71, 1.25
@@ -258,7 +258,7 @@ def test_a_cell_centre_in_the_geotiff_maps_to_its_world_xy(tmp_path):
         assert (cx, cy) == pytest.approx((100.0 + (col + 0.5) * 0.2, 50.0 - (row + 0.5) * 0.2))
         assert np.isnan(src.nodata) and np.isnan(src.read(1)[0, 0])
     assert paths["dem_png"].stat().st_size > 1000
-    back = Dem.load_npz(paths["dem_npz"])
+    back = read_dem_npz(paths["dem_npz"])
     assert back.geometry == geometry
     for k, v in dem.layers.items():
         np.testing.assert_array_equal(back.layers[k], v)
@@ -268,6 +268,6 @@ def test_a_corrupt_dem_file_gives_a_clear_error(tmp_path):
     bad = tmp_path / "dem.npz"
     bad.write_bytes(b"not a zip")
     with pytest.raises(DatasetError, match="dem.npz"):
-        Dem.load_npz(bad)
+        read_dem_npz(bad)
     with pytest.raises(DatasetError, match="not found"):
-        Dem.load_npz(tmp_path / "missing.npz")
+        read_dem_npz(tmp_path / "missing.npz")

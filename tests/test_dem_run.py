@@ -9,12 +9,12 @@ import pytest
 from click.testing import CliRunner
 
 from dem_graph.cli import main
-from dem_graph.dem.build import DemConfig, ground_returns
-from dem_graph.dem.export import LOCAL_ERROR_COLUMNS
-from dem_graph.dem.layers import Dem
-from dem_graph.dem.pipeline import make_run_dem
 from dem_graph.dem.returns import GroundReturns, PoseTrack
 from dem_graph.errors import DemGraphError
+from dem_graph.evaluation.dem_metrics import LocalErrorConfig
+from dem_graph.io.dem_files import read_dem_npz
+from dem_graph.pipeline.run_dem import ground_returns, make_run_dem
+from dem_graph.pipeline.run_folder import LOCAL_ERROR_COLUMNS, write_run_dem
 
 
 def _truth_track(sequence, dt_s=0.04) -> PoseTrack:
@@ -26,7 +26,7 @@ def _truth_track(sequence, dt_s=0.04) -> PoseTrack:
 def test_with_ground_truth_poses_the_smoke_dem_and_its_local_window_are_within_the_range_noise(smoke_log, tmp_path):
     poses = _truth_track(smoke_log)
     returns = ground_returns(smoke_log, poses)
-    run_dem = make_run_dem(returns, poses, smoke_log.ground_truth, DemConfig(local_every_n_frames=1))
+    run_dem = make_run_dem(returns, poses, smoke_log.ground_truth, local_error=LocalErrorConfig(every_n_frames=1))
     m = run_dem.metrics
     sigma = smoke_log.rig.laser.range_sigma_m
     assert m["height_error_laser_cells"]["cells"] > 500
@@ -40,7 +40,7 @@ def test_with_ground_truth_poses_the_smoke_dem_and_its_local_window_are_within_t
     assert lw["mean_abs_mean_m"] < 0.25 * sigma
     assert lw["mean_of_std_m"] < sigma
     # the run folder keeps the series frame by frame (Fig. 8 for one run), to the digits written
-    paths = run_dem.write(tmp_path)
+    paths = write_run_dem(run_dem, tmp_path)
     table = np.genfromtxt(paths["local_dem_error"], delimiter=",", names=True)
     assert table.dtype.names == LOCAL_ERROR_COLUMNS and len(table) == len(series.t_s)
     for name in LOCAL_ERROR_COLUMNS:
@@ -73,7 +73,7 @@ def test_dem_command_makes_the_runs_dem_again_from_its_saved_poses(run_folder, t
     again = tmp_path / "again"
     r = CliRunner().invoke(main, ["--no-progress", "dem", str(out), "--out", str(again)])  # the dataset from metrics.json
     assert r.exit_code == 0, r.output
-    a, b = Dem.load_npz(out / "dem.npz"), Dem.load_npz(again / "dem.npz")
+    a, b = read_dem_npz(out / "dem.npz"), read_dem_npz(again / "dem.npz")
     assert a.geometry == b.geometry
     for name in ("elevation", "count"):
         np.testing.assert_array_equal(a.layers[name], b.layers[name])
@@ -87,7 +87,7 @@ def test_dem_command_local_map_at_a_time_holds_only_earlier_measurements(run_fol
     log, out = run_folder
     r = CliRunner().invoke(main, ["--no-progress", "dem", str(out), "--dataset", str(log), "--at", "0.6", "--out", str(tmp_path / "local")])
     assert r.exit_code == 0, r.output
-    local = Dem.load_npz(tmp_path / "local" / "dem.npz")
+    local = read_dem_npz(tmp_path / "local" / "dem.npz")
     assert local.frame == "local"
     assert np.nanmax(local.layers["last_update_s"]) <= 0.6
     assert local.geometry.x_min_m > 0  # the focus area lies ahead of the body
@@ -114,7 +114,7 @@ def test_a_run_without_any_laser_return_makes_its_dem_from_the_map_points_alone(
     from dataclasses import replace
 
     from dem_graph.datasets.events import LaserScan
-    from dem_graph.run import RunConfig, run_estimator
+    from dem_graph.pipeline import RunConfig, run_estimator
 
     blind = smoke_log.replace_events([replace(e, ranges_m=e.ranges_m * np.nan) if isinstance(e, LaserScan) else e for e in smoke_log.events()])
     run = run_estimator(blind, RunConfig(estimator="ptpm", max_frames=20))

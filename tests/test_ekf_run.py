@@ -7,7 +7,7 @@ import pytest
 
 from dem_graph.datasets.events import CameraFrame
 from dem_graph.estimators.ekf import EkfConfig
-from dem_graph.run import RunConfig, run_estimator
+from dem_graph.pipeline import RunConfig, run_estimator
 
 
 def _run(log, estimator, **overrides):

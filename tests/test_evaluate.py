@@ -12,10 +12,10 @@ from click.testing import CliRunner
 
 from dem_graph.cli import main
 from dem_graph.datasets import FolderSequence
-from dem_graph.evaluation.evaluate import evaluate_run
 from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.io.tum import write_tum
-from dem_graph.run import RunConfig, run_estimator, write_run
+from dem_graph.pipeline import RunConfig, run_estimator, write_run
+from dem_graph.studies.evaluate import evaluate_run
 
 
 @pytest.fixture(scope="module")

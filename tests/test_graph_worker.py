@@ -16,7 +16,7 @@ import pytest
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators import keyframe_graph
 from dem_graph.estimators.graph_worker import GraphWorker, InProcessGraph, KeyframeMessage, ProcessGraph, RestartMessage
-from dem_graph.run import RunConfig, run_estimator
+from dem_graph.pipeline import RunConfig, run_estimator
 
 
 @pytest.fixture(scope="module")

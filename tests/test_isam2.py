@@ -12,7 +12,7 @@ from dem_graph.frontend.frontend import FrontEnd
 from dem_graph.frontend.tracker import TrackBatch
 from dem_graph.geometry.lie import so3_log
 from dem_graph.geometry.se3 import invert, transform_points
-from dem_graph.run import RunConfig, load_run_config, run_estimator
+from dem_graph.pipeline import RunConfig, RunOverrides, run_config, run_estimator
 from dem_graph.sim.scenarios import scenario
 from dem_graph.sim.simulator import SimulatedSequence
 
@@ -217,9 +217,9 @@ def test_batch_online_pass_is_the_online_estimator_at_its_spacing(smoke_log, isa
     run = _run(smoke_log, "isam2-batch", isam2={"batch_keyframe_every": 1})
     assert run.metrics["trajectory_online"]["ate_rmse_m"] == pytest.approx(isam2_run.metrics["trajectory"]["ate_rmse_m"], rel=1e-9)
     # --keyframe-every sets the spacing of the run's own estimator only
-    assert load_run_config(estimator="isam2-batch", keyframe_every=3).isam2.batch_keyframe_every == 3
-    assert load_run_config(estimator="isam2-batch", keyframe_every=3).isam2.keyframe_every == 1
-    assert load_run_config(estimator="isam2", keyframe_every=3).isam2.keyframe_every == 3
+    assert run_config(overrides=RunOverrides(estimator="isam2-batch", keyframe_every=3)).isam2.batch_keyframe_every == 3
+    assert run_config(overrides=RunOverrides(estimator="isam2-batch", keyframe_every=3)).isam2.keyframe_every == 1
+    assert run_config(overrides=RunOverrides(estimator="isam2", keyframe_every=3)).isam2.keyframe_every == 3
 
 
 def test_a_failed_graph_update_restarts_the_smoother(smoke_log, monkeypatch):
@@ -250,7 +250,7 @@ def test_search_regions_match_the_smoothers_marginals(smoke_log):
     Measured on this log (every frame a keyframe, 640 points): 66 % contained outright, the exact
     region sticking out by 0.5 % in sigma at the 95th percentile (1.010 in variance), 0.9 % at
     worst; area ratio median 1.006."""
-    from dem_graph.evaluation.search_regions import search_region_study
+    from dem_graph.studies.search_regions import search_region_study
 
     s = search_region_study(smoke_log, every_keyframes=2).summary()
     assert s["points"] > 200

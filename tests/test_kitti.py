@@ -15,7 +15,7 @@ from dem_graph.datasets.open import detect_format
 from dem_graph.datasets.velodyne import RingLaser, elevation_deg, read_velodyne_bin, reference_surface, split_rings
 from dem_graph.errors import DatasetError
 from dem_graph.geometry.se3 import invert, make_pose, rotation_from_rpy
-from dem_graph.run import RunConfig, load_run_config
+from dem_graph.pipeline import RunConfig, RunOverrides, run_config
 
 LIDAR_H = 1.73
 ELEVATIONS_DEG = np.concatenate([np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.33, 32)])
@@ -318,7 +318,7 @@ def test_scan_registration_recovers_a_metre_of_motion():
 def test_the_dataset_speed_replaces_the_prior_only_when_asked():
     from types import SimpleNamespace
 
-    from dem_graph.run import RunConfig, with_dataset_speed
+    from dem_graph.pipeline.run import RunConfig, with_dataset_speed
 
     sequence = SimpleNamespace(has_odometry=False, initial_speed_mps=12.5)
     config = RunConfig()
@@ -334,13 +334,13 @@ def test_kitti_brings_its_run_settings_under_the_users_configuration(tmp_path):
     # and a configuration file the user gives wins key by key
     seq = open_kitti(make_odometry_layout(tmp_path / "kitti"))
     defaults = RunConfig()
-    config = load_run_config(dataset_settings=seq.run_settings())
+    config = run_config(seq)
     assert config.motion.initial_speed_from_dataset and not defaults.motion.initial_speed_from_dataset
     assert config.frontend.tracker.max_search_half_size_px == 80 != defaults.frontend.tracker.max_search_half_size_px
     assert config.frontend.focus.corridor_width_m == 6.0 and config.frontend.focus.max_distance_m == 25.0
     user = tmp_path / "mine.yaml"
     user.write_text("frontend:\n  focus:\n    corridor_width_m: 4.0\n")
-    config = load_run_config(user, estimator="ptpm", dataset_settings=seq.run_settings())
+    config = run_config(seq, user, RunOverrides(estimator="ptpm"))
     assert config.frontend.focus.corridor_width_m == 4.0  # the user's value
     assert config.frontend.focus.max_distance_m == 25.0 and config.frontend.focus.cell_size_m == 1.0  # KITTI's, beside it
     assert config.motion.sigma_angular_acc_radps2 == 0.2 and config.estimator == "ptpm"

@@ -58,9 +58,9 @@ def test_events_in_order(kitti_sequence):
 
 
 def test_an_estimator_runs_on_the_first_frames(kitti_sequence):
-    from dem_graph.run import load_run_config, run_estimator
+    from dem_graph.pipeline import RunOverrides, run_config, run_estimator
 
-    config = load_run_config(estimator="ptpm", max_frames=12, dataset_settings=kitti_sequence.run_settings())
+    config = run_config(kitti_sequence, overrides=RunOverrides(estimator="ptpm", max_frames=12))
     run = run_estimator(kitti_sequence, config)
     assert run.error is None
     m = run.metrics

@@ -11,10 +11,11 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from dem_graph.errors import DemGraphError
-from dem_graph.evaluation.run_output import frame_timing_summary, write_run_outputs
+from dem_graph.evaluation.timing import frame_timing_summary
 from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.io.ply import read_points_ply
 from dem_graph.io.tum import read_tum
+from dem_graph.pipeline.run_folder import write_run_outputs
 
 
 def make_trajectory(n: int = 20, seed: int = 0) -> Trajectory:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from threadpoolctl import threadpool_info
 
 from dem_graph.estimators.ekf import EkfSlam
-from dem_graph.run import RunConfig, run_estimator
+from dem_graph.pipeline import RunConfig, run_estimator
 
 
 def _blas_threads() -> int:

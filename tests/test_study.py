@@ -7,10 +7,10 @@ import math
 
 import pytest
 
-from dem_graph.evaluation.bench_estimators import config_for_points
-from dem_graph.evaluation.study import StudyResult, StudyRow
 from dem_graph.frontend.focus import FocusArea
 from dem_graph.geometry.rig import default_rig
+from dem_graph.studies.bench_estimators import config_for_points
+from dem_graph.studies.study import StudyResult, StudyRow
 
 NAN = math.nan
 

@@ -18,7 +18,7 @@ import pytest
 from dem_graph.datasets.events import CameraFrame
 from dem_graph.frontend.match_kernel import AMBIGUOUS, LOW_SCORE, select_match
 from dem_graph.frontend.tracker import PatchTracker, TrackBatch, TrackResult, TrackStatus
-from dem_graph.run import RunConfig, run_estimator
+from dem_graph.pipeline import RunConfig, run_estimator
 
 WIDTH_PX, HEIGHT_PX = 320, 240
 TRACKER = PatchTracker()

@@ -9,10 +9,10 @@ import pytest
 from dem_graph.datasets.events import CameraFrame
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators.measurement_log import MeasurementLog
-from dem_graph.evaluation.tracking_noise import tracking_errors, tracking_noise_statistics
 from dem_graph.frontend.frontend import NewPoint
 from dem_graph.geometry.se3 import invert, transform_points
 from dem_graph.sim.raycast import TerrainScene
+from dem_graph.studies.tracking_noise import tracking_errors, tracking_noise_statistics
 
 
 def _tracks(n_tracks: int, length: int, sigma_white: float, sigma_ar: float, rho: float, rng, sigma_offset: float = 0.0):
@@ -135,7 +135,7 @@ def test_a_sequence_without_true_terrain_is_refused(smoke_log):
 def test_the_tracker_is_unbiased_and_sub_pixel_on_the_smoke_scenario(smoke_log):
     """The whole measurement on the smoke scenario (320x240, 4 m): the tracker's bias is under
     0.05 px and its RMS under 0.5 px on each axis."""
-    from dem_graph.evaluation.tracking_noise import measure_tracking_noise
+    from dem_graph.studies.tracking_noise import measure_tracking_noise
 
     noise = measure_tracking_noise(smoke_log)
     assert noise.n_observations > 1000

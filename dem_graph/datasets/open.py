@@ -79,4 +79,12 @@ def reopen_dataset(path: str | Path, recorded: dict | None) -> Sequence:
     return open_dataset(path, None, DatasetOptions(**options))
 
 
-__all__ = ["FORMATS", "DatasetOptions", "detect_format", "open_dataset", "reopen_dataset"]
+def open_sequence(sequence: Sequence | str | Path, recorded: dict | None = None) -> Sequence:
+    """``sequence`` itself, or the dataset at that path opened as a run recorded it (:func:`reopen_dataset`;
+    None: the defaults)."""
+    if isinstance(sequence, (str, Path)):
+        return reopen_dataset(sequence, recorded)
+    return sequence
+
+
+__all__ = ["FORMATS", "DatasetOptions", "detect_format", "open_dataset", "open_sequence", "reopen_dataset"]

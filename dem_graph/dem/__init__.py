@@ -5,12 +5,12 @@ fused per cell with its own uncertainty, in a global and a local view, with trav
 - :mod:`~dem_graph.dem.fusion`: the vectorised per-cell fusion with a Mahalanobis gate;
 - :mod:`~dem_graph.dem.layers`: the :class:`Dem` and its ``.npz`` file;
 - :mod:`~dem_graph.dem.traversability`: slope, step height, roughness;
-- :mod:`~dem_graph.dem.views`: the global map and the local map at a time;
-- :mod:`~dem_graph.dem.build`: a run's measurements and poses, in memory or from a run folder;
-- :mod:`~dem_graph.dem.export`: GeoTIFF, PLY, PNG and ``.npz`` files.
+- :mod:`~dem_graph.dem.views`: the global map and the local map at a time.
+
+Arrays in, maps out: a run's DEM is made by :mod:`dem_graph.pipeline.run_dem`, its files written by
+:mod:`dem_graph.io.dem_files`.
 """
 
-from dem_graph.dem.build import DemConfig, dem_from_result, load_run_points, load_run_poses
 from dem_graph.dem.fusion import FusionConfig, covering_geometry, fuse
 from dem_graph.dem.layers import Dem
 from dem_graph.dem.returns import GroundReturns, PoseTrack, laser_returns_world, map_point_returns
@@ -18,17 +18,13 @@ from dem_graph.dem.views import global_dem, local_dem
 
 __all__ = [
     "Dem",
-    "DemConfig",
     "FusionConfig",
     "GroundReturns",
     "PoseTrack",
     "covering_geometry",
-    "dem_from_result",
     "fuse",
     "global_dem",
     "laser_returns_world",
-    "load_run_points",
-    "load_run_poses",
     "local_dem",
     "map_point_returns",
 ]

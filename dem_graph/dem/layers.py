@@ -1,4 +1,4 @@
-"""A DEM: named per-cell layers on a north-up grid, and its ``.npz`` form.
+"""A DEM: named per-cell layers on a north-up grid (its files: :mod:`dem_graph.io.dem_files`).
 
 Layers (float32, NaN where a cell has no data, counts 0):
 
@@ -15,15 +15,12 @@ Layers (float32, NaN where a cell has no data, counts 0):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from dem_graph.errors import DatasetError
 from dem_graph.geometry.grid import ElevationGrid, GridGeometry
 
 FUSED_LAYERS = ("elevation", "variance", "count", "min", "max", "last_update_s", "outliers", "laser_count")
-_GEOMETRY_KEYS = ("x_min_m", "y_max_m", "resolution_m", "n_rows", "n_cols")
 
 
 @dataclass
@@ -55,44 +52,6 @@ class Dem:
 
     def elevation_grid(self) -> ElevationGrid:
         return ElevationGrid(self.geometry, self.layers["elevation"])
-
-    def save_npz(self, path: str | Path) -> Path:
-        """Every layer, the grid's geometry and the map's frame in one compressed ``.npz``."""
-        path = Path(path)
-        g = self.geometry
-        arrays = {f"layer_{k}": v for k, v in self.layers.items()}
-        arrays.update(
-            x_min_m=g.x_min_m, y_max_m=g.y_max_m, resolution_m=g.resolution_m, n_rows=g.n_rows, n_cols=g.n_cols,
-            frame=np.array(self.frame), n_measurements=self.n_measurements, n_used=self.n_used,
-        )
-        try:
-            with path.open("wb") as fh:
-                np.savez_compressed(fh, **arrays)
-        except OSError as exc:
-            raise DatasetError(path, f"cannot write ({exc.strerror or exc})") from None
-        return path
-
-    @classmethod
-    def load_npz(cls, path: str | Path) -> Dem:
-        path = Path(path)
-        if not path.is_file():
-            raise DatasetError(path, "file not found")
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                missing = [k for k in _GEOMETRY_KEYS if k not in data]
-                if missing:
-                    raise DatasetError(path, f"not a DEM file: no {', '.join(missing)}")
-                g = GridGeometry(float(data["x_min_m"]), float(data["y_max_m"]), float(data["resolution_m"]), int(data["n_rows"]), int(data["n_cols"]))
-                layers = {k[len("layer_"):]: np.asarray(data[k]) for k in data.files if k.startswith("layer_")}
-                frame = str(data["frame"]) if "frame" in data else "world"
-                n_meas = int(data["n_measurements"]) if "n_measurements" in data else 0
-                n_used = int(data["n_used"]) if "n_used" in data else 0
-        except (OSError, ValueError, EOFError) as exc:
-            raise DatasetError(path, f"not a readable .npz file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
-        for name, a in layers.items():
-            if a.shape != g.shape:
-                raise DatasetError(path, f"layer {name!r} has shape {a.shape}, the grid is {g.shape}")
-        return cls(g, layers, n_measurements=n_meas, n_used=n_used, frame=frame)
 
 
 __all__ = ["Dem", "FUSED_LAYERS"]

@@ -9,8 +9,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from pydantic import Field
 from scipy.spatial import cKDTree
 
+from dem_graph.config_types import StrictModel
 from dem_graph.dem.fusion import FusionConfig
 from dem_graph.dem.layers import Dem
 from dem_graph.dem.returns import GroundReturns, PoseTrack
@@ -74,6 +76,20 @@ def corridor_coverage(dem: Dem, trajectory: Trajectory, half_width_m: float) -> 
     n = int(corridor.sum())
     covered = int((corridor & dem.covered).sum())
     return {"corridor_cells": n, "covered_cells": covered, "coverage": covered / n if n else float("nan"), "half_width_m": half_width_m}
+
+
+class LocalErrorConfig(StrictModel):
+    """The window of the Fig. 8 measure: a local DEM every few frames, compared with the truth over
+    a rectangle ahead of the vehicle."""
+
+    start_m: float = Field(1.0, ge=0, description="the window starts this far ahead of the body origin, metres")
+    length_m: float = Field(5.0, gt=0, description="length of the window ahead of the vehicle, metres")
+    width_m: float = Field(5.0, gt=0, description="width of the window, metres")
+    every_n_frames: int = Field(5, ge=1, description="one local DEM every this many frames")
+
+    @property
+    def x_range_m(self) -> tuple[float, float]:
+        return (self.start_m, self.start_m + self.length_m)
 
 
 @dataclass(frozen=True)
@@ -151,4 +167,4 @@ def local_error_series(
     return LocalErrorSeries(times_s, a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4])
 
 
-__all__ = ["HeightErrors", "LocalErrorSeries", "corridor_coverage", "corridor_mask", "height_errors", "local_error_series", "truth_at_cells"]
+__all__ = ["HeightErrors", "LocalErrorConfig", "LocalErrorSeries", "corridor_coverage", "corridor_mask", "height_errors", "local_error_series", "truth_at_cells"]

@@ -1,4 +1,5 @@
-"""Timing statistics, and the table layout every benchmark prints."""
+"""Timing statistics (a run's time per frame by phase), the machine they came from, and the table
+layout every benchmark prints."""
 
 from __future__ import annotations
 
@@ -21,6 +22,19 @@ class TimingStats:
         if a.size == 0:
             return cls(0, float("nan"), float("nan"), float("nan"))
         return cls(int(a.size), float(np.median(a)), float(np.percentile(a, 95)), float(a.mean()))
+
+
+def frame_timing_summary(per_frame: dict[str, list[float]]) -> dict[str, dict[str, float]]:
+    """Per-phase timing of a run: ``{phase: {"median_ms", "p95_ms", "mean_ms"}}``.
+
+    ``per_frame`` maps a phase ("total", "prediction", "tracking", "update", ...) to its duration in
+    seconds at each frame. A phase with no sample gets NaN (null in ``metrics.json``).
+    """
+    summary = {}
+    for phase, samples in per_frame.items():
+        stats = TimingStats.from_seconds(samples)
+        summary[phase] = {"median_ms": stats.median_ms, "p95_ms": stats.p95_ms, "mean_ms": stats.mean_ms}
+    return summary
 
 
 def machine_description() -> str:

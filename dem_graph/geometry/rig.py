@@ -12,12 +12,29 @@ from typing import Annotated, Literal
 
 import numpy as np
 import yaml
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import BeforeValidator, Field, PlainSerializer, ValidationError, WithJsonSchema, field_validator, model_validator
 
-from dem_graph.config_types import Pose4x4, StrictModel, format_validation_error
+from dem_graph.config_types import StrictModel, format_validation_error
 from dem_graph.errors import ConfigError
 from dem_graph.geometry.camera import PinholeCamera
-from dem_graph.geometry.se3 import invert, make_pose, rotation_from_rpy
+from dem_graph.geometry.se3 import check_pose, invert, make_pose, rotation_from_rpy
+
+
+def _to_pose(value) -> np.ndarray:
+    # the field name is attached by pydantic's error location; check_pose gives the problem
+    try:
+        return check_pose(value, "transform")
+    except Exception as exc:  # turned into a pydantic validation error with the field's location
+        raise ValueError(str(exc)) from None
+
+
+Pose4x4 = Annotated[
+    np.ndarray,
+    BeforeValidator(_to_pose),
+    PlainSerializer(lambda T: [[float(x) for x in row] for row in np.asarray(T)], return_type=list),
+    WithJsonSchema({"type": "array", "items": {"type": "array", "items": {"type": "number"}}}),
+]
+"""A 4x4 rigid transform written as a nested list (row-major) in YAML."""
 
 
 class CameraSpec(StrictModel):

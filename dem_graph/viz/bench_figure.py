@@ -9,13 +9,23 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
-from dem_graph.evaluation.bench_estimators import BenchRow
+from dem_graph.evaluation.timing import TimingStats
 from dem_graph.viz.plotting import colour, pyplot, save_figure
 
 FRAME_BUDGET_MS = 40.0  # one camera frame at 25 Hz
+
+
+class BenchRow(Protocol):
+    """What the figure reads of a benchmark's row (:class:`dem_graph.studies.bench_estimators.BenchRow`)."""
+
+    estimator: str
+    max_points: int
+    frame: TimingStats
+    live_points_median: float
 
 
 @dataclass(frozen=True)

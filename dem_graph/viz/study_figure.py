@@ -4,12 +4,21 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Protocol
 
-from dem_graph.evaluation.study import StudyRow
 from dem_graph.viz.bench_figure import FRAME_BUDGET_MS
 from dem_graph.viz.plotting import colour, pyplot, save_figure
 
 _MARKERS = ("o", "s", "^", "D", "v", "P", "X")
+
+
+class StudyRow(Protocol):
+    """What the figure reads of a study's row (:class:`dem_graph.studies.study.StudyRow`)."""
+
+    estimator: str
+    speed_mps: float
+    ate_m: float
+    frame_ms_median: float
 
 
 def accuracy_cost_figure(path: str | Path, rows: list[StudyRow], title: str = "") -> Path:

@@ -15,8 +15,9 @@ from dem_graph.datasets.events import CameraFrame
 from dem_graph.datasets.memory import InMemorySequence
 from dem_graph.evaluation.timing import TimingStats, format_table, machine_description
 from dem_graph.frontend.focus import FocusArea
+from dem_graph.pipeline.config import RunConfig
+from dem_graph.pipeline.run import run_estimator
 from dem_graph.progress import progress
-from dem_graph.run import RunConfig, run_estimator
 from dem_graph.sim.scenarios import scenario
 from dem_graph.sim.simulator import SimulatedSequence
 

@@ -30,6 +30,8 @@ import numpy as np
 from dem_graph.datasets.base import Sequence
 from dem_graph.errors import DemGraphError
 from dem_graph.geometry.se3 import invert, transform_points
+from dem_graph.pipeline.config import RunConfig, run_config
+from dem_graph.pipeline.run import feed, make_estimator
 
 WINDOWS = (1, 2, 5, 10, 20)
 
@@ -189,12 +191,10 @@ def tracking_errors(sequence: Sequence, log) -> tuple[np.ndarray, np.ndarray, np
     return landmarks[ok], frames[ok], uv[ok] - uv_true[ok]
 
 
-def measure_tracking_noise(sequence: Sequence, max_frames: int | None = None, config=None) -> TrackingNoise:
+def measure_tracking_noise(sequence: Sequence, max_frames: int | None = None, config: RunConfig | None = None) -> TrackingNoise:
     """Run the front end (inside the graph estimator's online pass, which logs every observation)
     over ``sequence`` and measure its tracking errors."""
-    from dem_graph.run import RunConfig, feed, make_estimator
-
-    config = (config or RunConfig()).model_copy(update={"estimator": "isam2-batch", "max_frames": max_frames})
+    config = (config or run_config(sequence)).model_copy(update={"estimator": "isam2-batch", "max_frames": max_frames})
     estimator = make_estimator(sequence, config)
     for _ in feed(estimator, sequence, max_frames, finish=False):
         pass

@@ -20,13 +20,14 @@ import numpy as np
 
 from dem_graph.datasets.folder import FolderSequence
 from dem_graph.errors import DatasetError, DemGraphError, one_line
-from dem_graph.evaluation.bench_estimators import config_for_points
-from dem_graph.evaluation.headline import headline
 from dem_graph.evaluation.timing import format_table
+from dem_graph.pipeline.config import ESTIMATORS
+from dem_graph.pipeline.run import run_estimator
 from dem_graph.progress import progress
-from dem_graph.run import ESTIMATORS, run_estimator
 from dem_graph.sim.pipeline import simulate
 from dem_graph.sim.scenarios import scenario
+from dem_graph.studies.bench_estimators import config_for_points
+from dem_graph.studies.headline import headline
 
 
 @dataclass(frozen=True)

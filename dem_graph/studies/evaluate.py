@@ -1,6 +1,6 @@
 """The accuracy of one run folder against a dataset's ground truth (``dem-graph evaluate RUN --truth DATASET``).
 
-From the files of the run folder (see :mod:`dem_graph.evaluation.run_output`):
+From the files of the run folder (see :mod:`dem_graph.pipeline.run_folder`):
 
 - ``trajectory.tum`` (and ``trajectory_*.tum``, e.g. isam2's smoothed poses): anchored and aligned
   ATE, drift in % of distance and the RPE over 10 m (:func:`accuracy_summary`);
@@ -10,30 +10,35 @@ From the files of the run folder (see :mod:`dem_graph.evaluation.run_output`):
 - ``metrics.json``, when there is one: the run's own measurements that need no truth (estimator,
   frames, time and points per frame) are carried over as they are.
 
-The result has the layout of a run's ``metrics.json``, so :mod:`dem_graph.evaluation.headline`
+The result has the layout of a run's ``metrics.json``, so :mod:`dem_graph.studies.headline`
 reads both.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from dem_graph.datasets.base import GroundTruth, Sequence
-from dem_graph.dem.build import POSES_NPZ
-from dem_graph.dem.pipeline import RunDem, run_folder_dem
+from dem_graph.datasets.open import open_sequence
 from dem_graph.errors import DatasetError, DemGraphError
-from dem_graph.evaluation.headline import COLUMNS, format_value, headline
-from dem_graph.evaluation.run_output import write_json
 from dem_graph.evaluation.trajectory_metrics import accuracy_summary
 from dem_graph.io.tum import read_tum
+from dem_graph.pipeline.run_dem import RunDem
+from dem_graph.pipeline.run_folder import (
+    METRICS_JSON,
+    POSES_NPZ,
+    TRAJECTORY_TUM,
+    read_run_metrics,
+    run_folder_config,
+    run_folder_dem,
+    write_json,
+)
+from dem_graph.studies.headline import COLUMNS, format_value, headline
 
 log = logging.getLogger(__name__)
 
-TRAJECTORY_TUM = "trajectory.tum"
-METRICS_JSON = "metrics.json"
 EVALUATION_JSON = "evaluation.json"
 # what a run measured that needs no truth: carried over from its metrics.json
 _CARRIED = ("estimator", "frames", "elapsed_s", "error", "time_per_frame", "points_per_frame", "map_points")
@@ -46,20 +51,6 @@ def require_ground_truth(sequence: Sequence) -> GroundTruth:
     root = getattr(sequence, "path", None)
     where = Path(root) / "ground_truth" / "trajectory.tum" if root is not None else sequence.name
     raise DatasetError(where, "not found: the dataset has no ground truth to evaluate against")
-
-
-def read_run_metrics(run_dir: str | Path) -> dict:
-    """A run folder's ``metrics.json``; an empty dict when it is absent, :class:`DatasetError` when unreadable."""
-    path = Path(run_dir) / METRICS_JSON
-    if not path.is_file():
-        return {}
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise DatasetError(path, f"not a readable JSON file ({str(exc).splitlines()[0]})") from None
-    if not isinstance(data, dict):
-        raise DatasetError(path, "must hold a mapping")
-    return data
 
 
 @dataclass
@@ -111,16 +102,6 @@ def _trajectory_accuracy(path: Path, truth: GroundTruth) -> dict:
         raise DatasetError(path, f"cannot be compared with the ground truth: {exc}") from None
 
 
-def open_sequence(sequence: Sequence | str | Path, recorded_options: dict | None = None) -> Sequence:
-    """``sequence`` itself, or the dataset at that path (a dataset folder, KITTI, ...) opened with the
-    options a run recorded (:func:`~dem_graph.datasets.open.reopen_dataset`; None: the defaults)."""
-    if isinstance(sequence, (str, Path)):
-        from dem_graph.datasets.open import reopen_dataset
-
-        return reopen_dataset(sequence, recorded_options)
-    return sequence
-
-
 def evaluate_run(run_dir: str | Path, sequence: Sequence | str | Path, with_dem: bool = True) -> RunEvaluation:
     """The metrics of the run folder ``run_dir`` against the ground truth of ``sequence`` (the dataset,
     or its folder, the run was made from: its laser scans make the DEM again). See the module for
@@ -130,8 +111,6 @@ def evaluate_run(run_dir: str | Path, sequence: Sequence | str | Path, with_dem:
     ``trajectory.tum``, a dataset without ground truth, or a run whose times lie outside the truth's.
     A run folder without ``poses.npz`` gets no DEM metrics (``metrics["dem"]["error"]`` says why).
     """
-    from dem_graph.run import run_folder_config
-
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise DatasetError(run_dir, "run folder not found" if not run_dir.exists() else "not a folder")
@@ -146,7 +125,7 @@ def evaluate_run(run_dir: str | Path, sequence: Sequence | str | Path, with_dem:
     if with_dem:
         if (run_dir / POSES_NPZ).is_file():
             config = run_folder_config(run_dir)
-            dem = run_folder_dem(run_dir, sequence, None, config.dem, config.frontend.focus, local_errors=True)
+            dem = run_folder_dem(run_dir, sequence, None, config, local_errors=True)
             metrics["dem"] = dem.metrics
         else:
             metrics["dem"] = {"error": f"no {POSES_NPZ} in the run folder to make the DEM from"}
@@ -154,4 +133,4 @@ def evaluate_run(run_dir: str | Path, sequence: Sequence | str | Path, with_dem:
     return RunEvaluation(run_dir, dataset, metrics, dem)
 
 
-__all__ = ["EVALUATION_JSON", "RunEvaluation", "evaluate_run", "open_sequence", "read_run_metrics", "require_ground_truth"]
+__all__ = ["EVALUATION_JSON", "METRICS_JSON", "RunEvaluation", "evaluate_run", "require_ground_truth"]

@@ -23,17 +23,18 @@ from pathlib import Path
 import numpy as np
 
 from dem_graph.datasets.base import Sequence
+from dem_graph.datasets.open import open_sequence
 from dem_graph.dem.layers import Dem
 from dem_graph.errors import DatasetError, DemGraphError, one_line
 from dem_graph.evaluation.dem_metrics import LocalErrorSeries
-from dem_graph.evaluation.evaluate import open_sequence
-from dem_graph.evaluation.headline import COLUMNS, format_value, headline
-from dem_graph.evaluation.report import Figure, ReportPage
-from dem_graph.evaluation.run_output import write_json
 from dem_graph.evaluation.timing import format_table, machine_description
 from dem_graph.geometry.trajectory import Trajectory
+from dem_graph.pipeline.config import ESTIMATORS, RunConfig, run_config
+from dem_graph.pipeline.run import run_estimator
+from dem_graph.pipeline.run_folder import write_json, write_run
 from dem_graph.progress import progress
-from dem_graph.run import ESTIMATORS, RunConfig, run_estimator, write_run
+from dem_graph.studies.headline import COLUMNS, format_value, headline
+from dem_graph.studies.report import Figure, ReportPage
 
 log = logging.getLogger(__name__)
 
@@ -164,7 +165,7 @@ def compare(
     warm_up_frames: int = 3,
 ) -> Comparison:
     """Run each of ``estimators`` on ``sequence`` (a dataset, or its folder) with ``config`` (its
-    ``estimator`` field is set per run), write every run folder, ``summary.json``, the figures and
+    ``estimator`` field is set per run; None: the defaults with the dataset's run settings), write every run folder, ``summary.json``, the figures and
     the report into ``out_dir``. ``dataset`` names the data in the outputs (default: the sequence's
     folder, else its name).
 
@@ -173,7 +174,7 @@ def compare(
     run's time per frame only."""
     names = parse_estimators(estimators)
     sequence = open_sequence(sequence)
-    config = config or RunConfig()
+    config = config or run_config(sequence)
     out_dir = Path(out_dir)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -218,8 +219,8 @@ def write_figures(comparison: Comparison, sequence: Sequence, config: RunConfig)
     paths["figure_position_error"] = figures.position_error_figure(folder / "position_error.png", truth.trajectory, estimates, t0)
     series = {r.estimator: r.local_series for r in comparison.runs if r.local_series is not None}
     if series:
-        d = config.dem
-        window = f"{d.local_length_m:g} x {d.local_width_m:g} m from {d.local_start_m:g} m ahead"
+        w = config.local_error
+        window = f"{w.length_m:g} x {w.width_m:g} m from {w.start_m:g} m ahead"
         paths["figure_local_error"] = figures.local_error_figure(folder / "local_dem_error.png", series, t0, window)
     best = comparison.best_dem
     if best is not None and truth.elevation is not None:

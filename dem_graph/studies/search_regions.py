@@ -22,7 +22,7 @@ from gtsam.symbol_shorthand import L, X
 from dem_graph.datasets.base import Sequence
 from dem_graph.estimators.isam2 import Isam2Config, Isam2Slam
 from dem_graph.estimators.pose_update import project_with_jacobians
-from dem_graph.run import feed
+from dem_graph.pipeline.run import feed
 
 
 @dataclass

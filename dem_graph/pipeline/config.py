@@ -1,0 +1,164 @@
+"""The run's configuration and its layering, in one place.
+
+A run's settings come from four layers, each over the one before (:func:`run_config`):
+
+1. the defaults of :class:`RunConfig`;
+2. the dataset's own run settings (:meth:`Sequence.run_settings`: KITTI brings a car's);
+3. the user's YAML file (``--config``; a run folder's ``config.yaml`` is one);
+4. explicit overrides (:class:`RunOverrides`: the command line's flags).
+
+``dem-graph run`` and :func:`dem_graph.pipeline.run.run_dataset` both build their configuration
+here, so a notebook and the command line run the same thing.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Literal, get_args
+
+import yaml
+from pydantic import Field, ValidationError
+
+from dem_graph.config_types import StrictModel, format_validation_error
+from dem_graph.datasets.base import Sequence
+from dem_graph.dem.fusion import FusionConfig
+from dem_graph.errors import ConfigError
+from dem_graph.estimators.ekf import EkfOptions
+from dem_graph.estimators.isam2 import Isam2Options
+from dem_graph.estimators.settings import SharedSettings
+from dem_graph.evaluation.dem_metrics import LocalErrorConfig
+
+log = logging.getLogger(__name__)
+
+EstimatorName = Literal["gm", "ptpm", "isam2", "isam2-batch"]
+ESTIMATORS: tuple[str, ...] = get_args(EstimatorName)
+
+
+class DemConfig(StrictModel):
+    """The dense DEM a run makes from its poses."""
+
+    fusion: FusionConfig = Field(default_factory=FusionConfig, description="per-cell fusion and the grid")
+    map_points: bool = Field(True, description="fuse the estimator's map points along with every laser return")
+    traversability_window: int = Field(3, ge=3, description="cells on a side of the slope / step / roughness window (odd)")
+    local_history_s: float = Field(10.0, gt=0, description="a local DEM fuses the measurements of this many seconds before its time")
+
+
+class RunConfig(SharedSettings):
+    """A run: which estimator, the settings all estimators share (front end, motion model, false
+    matches), each estimator's own options, the DEM and the Fig. 8 measure."""
+
+    estimator: EstimatorName = Field("ptpm", description="which estimator")
+    ekf: EkfOptions = Field(default_factory=EkfOptions, description="EKF baselines (gm, ptpm)")
+    isam2: Isam2Options = Field(default_factory=Isam2Options, description="the graph estimator (isam2, isam2-batch)")
+    max_frames: int | None = Field(None, ge=1, description="stop after this many camera frames")
+    realtime: bool = Field(
+        False,
+        description="give each event to the estimator when its time since the first event has passed on the wall clock, as the sensors would on the "
+        "vehicle; false: as fast as the estimator takes them. Matters with isam2.graph_process, whose graph then keeps up as it would live",
+    )
+    blas_threads: int = Field(1, ge=1, description="threads numpy's linear algebra may use while the estimator runs (the matrices are small)")
+    dem: DemConfig = Field(default_factory=DemConfig, description="the dense DEM made from the run's poses")
+    local_error: LocalErrorConfig = Field(default_factory=LocalErrorConfig, description="the Fig. 8 measure: the local DEM's error ahead of the vehicle (with truth)")
+
+
+@dataclass
+class RunOverrides:
+    """Values set over the configuration file: what the command line's flags set. None (or False)
+    leaves the layer below in place."""
+
+    estimator: EstimatorName | None = None
+    max_frames: int | None = None
+    max_points: int | None = None  # frontend.max_points
+    no_odometry: bool = False  # motion.model: constant_velocity
+    lag_s: float | None = None  # isam2.lag_s
+    keyframe_every: int | None = None  # isam2.keyframe_every; for isam2-batch, its online pass's (batch_keyframe_every)
+    graph_process: bool = False  # isam2.graph_process
+    realtime: bool = False
+
+    def apply(self, config: RunConfig) -> RunConfig:
+        """Set the given values on ``config`` (validated on assignment) and return it."""
+        if self.estimator is not None:
+            config.estimator = self.estimator
+        if self.max_frames is not None:
+            config.max_frames = self.max_frames
+        if self.max_points is not None:
+            config.frontend.max_points = self.max_points
+        if self.no_odometry:
+            config.motion.model = "constant_velocity"
+        if self.lag_s is not None:
+            config.isam2.lag_s = self.lag_s
+        if self.keyframe_every is not None:  # the batch's online pass has its own spacing
+            if config.estimator == "isam2-batch":
+                config.isam2.batch_keyframe_every = self.keyframe_every
+            else:
+                config.isam2.keyframe_every = self.keyframe_every
+        if self.graph_process:
+            config.isam2.graph_process = True
+        if self.realtime:
+            config.realtime = True
+        return config
+
+    def given(self) -> dict:
+        """The overrides that are set, by name."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) not in (None, False)}
+
+
+def merge_settings(base: dict, over: dict) -> dict:
+    """``base`` with ``over``'s values in its place, key by key down nested mappings."""
+    out = dict(base)
+    for key, value in over.items():
+        out[key] = merge_settings(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+# the Fig. 8 window's settings sat under ``dem`` before they had a section of their own
+_MOVED_TO_LOCAL_ERROR = {"local_start_m": "start_m", "local_length_m": "length_m", "local_width_m": "width_m", "local_every_n_frames": "every_n_frames"}
+
+
+def _upgrade(data: dict, path: Path) -> dict:
+    dem = data.get("dem")
+    if not isinstance(dem, dict) or not any(k in dem for k in _MOVED_TO_LOCAL_ERROR):
+        return data
+    data, dem = dict(data), dict(dem)
+    local_error = dict(data.get("local_error") or {})
+    for old, new in _MOVED_TO_LOCAL_ERROR.items():
+        if old in dem:
+            local_error.setdefault(new, dem.pop(old))
+    log.info("%s: dem.local_* read as local_error.* (the Fig. 8 window's section)", path)
+    data["dem"], data["local_error"] = dem, local_error
+    return data
+
+
+def read_config_file(path: str | Path) -> dict:
+    """The mapping in a YAML run configuration; :class:`ConfigError` naming the file if it cannot be read."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError("configuration file not found", path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except (yaml.YAMLError, OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read the configuration ({str(exc).splitlines()[0]})", path) from None
+    if not isinstance(data, dict):
+        raise ConfigError("a run configuration must be a mapping", path)
+    return _upgrade(data, path)
+
+
+def run_config(sequence: Sequence | None = None, config_file: str | Path | None = None, overrides: RunOverrides | None = None) -> RunConfig:
+    """The run configuration: the defaults, then ``sequence``'s own run settings, then the YAML
+    file ``config_file``, then ``overrides``. A wrong value anywhere is a :class:`ConfigError`."""
+    data: dict = sequence.run_settings() if sequence is not None else {}
+    path = Path(config_file) if config_file is not None else None
+    if path is not None:
+        data = merge_settings(data, read_config_file(path))
+    try:
+        config = RunConfig.model_validate(data)
+        if overrides is not None:
+            overrides.apply(config)
+    except ValidationError as exc:
+        raise ConfigError(f"invalid run configuration: {format_validation_error(exc)}", path) from None
+    return config
+
+
+__all__ = ["DemConfig", "ESTIMATORS", "EstimatorName", "RunConfig", "RunOverrides", "merge_settings", "read_config_file", "run_config"]

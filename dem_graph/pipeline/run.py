@@ -1,0 +1,169 @@
+"""Running an estimator over a dataset: the loop, its metrics and its DEM.
+
+``run_estimator`` owns the loop over a :class:`Sequence` (the estimators only see events). If the
+loop fails part way (a corrupt image late in a log, frames out of time order), what was estimated
+so far is still returned, with the error, so :func:`~dem_graph.pipeline.run_folder.write_run` can
+save it.
+
+:func:`run_dataset` is what ``dem-graph run`` runs, as one call for a notebook: open the dataset,
+layer the configuration (:func:`~dem_graph.pipeline.config.run_config`), run, write the run folder.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from threadpoolctl import threadpool_limits
+
+from dem_graph.datasets.base import Sequence
+from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.datasets.open import DatasetOptions, open_dataset
+from dem_graph.errors import DemGraphError
+from dem_graph.estimators.base import Estimator, EstimatorResult
+from dem_graph.estimators.ekf import EkfConfig, EkfSlam
+from dem_graph.estimators.isam2 import Isam2Config, Isam2Slam
+from dem_graph.estimators.settings import SharedSettings
+from dem_graph.pipeline.config import ESTIMATORS, RunConfig, RunOverrides, run_config
+from dem_graph.pipeline.metrics import compute_metrics
+from dem_graph.pipeline.run_dem import RunDem, dem_from_result, make_run_dem
+from dem_graph.pipeline.run_folder import write_run
+from dem_graph.progress import progress
+
+log = logging.getLogger(__name__)
+
+
+def make_estimator(sequence: Sequence, config: RunConfig) -> Estimator:
+    shared = {k: getattr(config, k) for k in SharedSettings.model_fields}
+    args = (sequence.rig, sequence.T_world_body_initial, sequence.t_start_s, sequence.has_odometry)
+    if config.estimator in ("gm", "ptpm"):
+        return EkfSlam(*args, EkfConfig(**shared, **dict(config.ekf), variant=config.estimator))
+    if config.estimator in ("isam2", "isam2-batch"):
+        return Isam2Slam(*args, Isam2Config(**shared, **dict(config.isam2), batch=config.estimator == "isam2-batch"))
+    raise DemGraphError(f"unknown estimator '{config.estimator}'; choose one of {', '.join(ESTIMATORS)}")
+
+
+@dataclass
+class RunResult:
+    estimator: EstimatorResult
+    config: RunConfig
+    metrics: dict = field(default_factory=dict)
+    error: str | None = None  # set when the loop stopped early; the result holds what was done
+    elapsed_s: float = 0.0
+    dem: RunDem | None = None  # the dense DEM from the run's poses (None if it could not be made)
+    paths: dict[str, Path] = field(default_factory=dict)  # the run folder's files, once written
+
+
+def feed(estimator: Estimator, sequence: Sequence, max_frames: int | None = None, finish: bool = True, realtime: bool = False) -> Iterator[int]:
+    """Give the sequence's events to ``estimator`` in time order (with a progress bar), up to
+    ``max_frames`` camera frames, then call its ``finish`` (unless ``finish`` is false). Yields the
+    number of camera frames given so far after each one. With ``realtime`` an event is given no
+    sooner than its time after the first event's has passed on the wall clock (an estimator that
+    falls behind gets the next one at once, as from a sensor's buffer)."""
+    frames = 0
+    t0_s = wall0_s = None
+    for event in progress(sequence.events(), total=sequence.event_count(), desc=estimator.name, unit="event"):
+        if realtime:
+            if t0_s is None:
+                t0_s, wall0_s = event.t_s, time.perf_counter()
+            wait_s = (event.t_s - t0_s) - (time.perf_counter() - wall0_s)
+            if wait_s > 0:
+                time.sleep(wait_s)
+        if isinstance(event, CameraFrame):
+            estimator.on_frame(event)
+            frames += 1
+            yield frames
+            if max_frames and frames >= max_frames:
+                break
+        elif isinstance(event, LaserScan):
+            estimator.on_scan(event)
+        elif isinstance(event, Odometry):
+            estimator.on_odometry(event)
+    if finish:
+        estimator.finish()
+
+
+def with_dataset_speed(sequence: Sequence, config: RunConfig) -> RunConfig:
+    """``config``, its starting speed replaced by the dataset's own estimate (``initial_speed_mps``)
+    when ``motion.initial_speed_from_dataset`` asks for it and the dataset has one."""
+    if not config.motion.initial_speed_from_dataset or config.motion.uses_odometry(sequence.has_odometry):
+        return config
+    speed = sequence.initial_speed_mps
+    if speed is None:
+        log.warning("the dataset gives no starting speed: starting at %.2f m/s (motion.initial_speed_mps)", config.motion.initial_speed_mps)
+        return config
+    config = config.model_copy(deep=True)
+    config.motion.initial_speed_mps = float(speed)
+    return config
+
+
+def run_estimator(sequence: Sequence, config: RunConfig | None = None, with_dem: bool = True) -> RunResult:
+    """Run ``config``'s estimator over ``sequence``, then make the run's metrics and DEM.
+
+    ``config`` is taken as it is (make it with :func:`~dem_graph.pipeline.config.run_config` to
+    have the dataset's own run settings under it); None: the defaults with the dataset's settings,
+    as ``dem-graph run`` would without options."""
+    config = with_dataset_speed(sequence, config or run_config(sequence))
+    estimator = make_estimator(sequence, config)
+    start = time.perf_counter()
+    error = None
+    frames = 0
+    try:
+        with threadpool_limits(limits=config.blas_threads, user_api="blas"):
+            for frames in feed(estimator, sequence, config.max_frames, realtime=config.realtime):  # noqa: B007 - read in the handler below
+                pass
+    except DemGraphError as exc:
+        error = str(exc)
+        log.error("run stopped after %d frames: %s", frames, exc)
+    result = estimator.result()
+    run = RunResult(result, config, error=error, elapsed_s=time.perf_counter() - start)
+    run.metrics = compute_metrics(sequence, result, error, run.elapsed_s)
+    if with_dem and result.frames:
+        run.dem = run_dem(run, sequence)
+    return run
+
+
+def run_dem(run: RunResult, sequence: Sequence) -> RunDem | None:
+    """The run's DEM and its metrics (into ``run.metrics["dem"]``); a failure is logged, the run kept."""
+    try:
+        returns, poses = dem_from_result(run.estimator, sequence, run.config.dem)
+        half_width = run.config.frontend.focus.corridor_width_m / 2.0
+        dem = make_run_dem(returns, poses, sequence.ground_truth, run.config.dem, corridor_half_width_m=half_width, local_error=run.config.local_error)
+    except DemGraphError as exc:
+        log.warning("no DEM for this run: %s", exc)
+        run.metrics["dem"] = {"error": str(exc)}
+        return None
+    run.metrics["dem"] = dem.metrics
+    return dem
+
+
+def run_dataset(
+    dataset: str | Path | Sequence,
+    overrides: RunOverrides | None = None,
+    config_file: str | Path | None = None,
+    out_dir: str | Path | None = None,
+    dataset_options: DatasetOptions | None = None,
+    fmt: str | None = None,
+) -> RunResult:
+    """What ``dem-graph run DATASET`` runs: the dataset opened (a folder, KITTI or a ROS bag, told from
+    the path unless ``fmt``; or a :class:`Sequence` already open), its configuration layered
+    (defaults < the dataset's run settings < ``config_file`` < ``overrides``), the estimator run,
+    and, with ``out_dir``, the run folder written (``result.paths``). A run that stopped early
+    (``result.error``) is written too, up to where it stopped."""
+    if isinstance(dataset, Sequence):
+        sequence, where = dataset, getattr(dataset, "path", None)
+    else:
+        sequence, where = open_dataset(dataset, fmt, dataset_options), dataset
+    result = run_estimator(sequence, run_config(sequence, config_file, overrides))
+    if where is not None:
+        result.metrics["dataset"] = str(Path(where).resolve())
+    result.metrics["dataset_options"] = sequence.open_options()
+    if out_dir is not None:
+        result.paths = write_run(result, out_dir)
+    return result
+
+
+__all__ = ["RunResult", "feed", "make_estimator", "run_dataset", "run_dem", "run_estimator", "with_dataset_speed"]
