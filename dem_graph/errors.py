@@ -37,6 +37,10 @@ class DatasetError(DemGraphError):
         super().__init__(f"{path}: {problem}")
 
 
+class EventOrderError(DemGraphError):
+    """An event reached an estimator out of time order (a camera frame not after the one before)."""
+
+
 class MissingDependencyError(DemGraphError):
     """An optional dependency is not installed."""
 

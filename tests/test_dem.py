@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dem_graph.dem.fusion import FusionConfig, fuse
-from dem_graph.dem.returns import LASER, MAP_POINT, GroundReturns, PoseTrack, laser_returns_world
+from dem_graph.dem.returns import GroundReturns, PoseTrack, ReturnSource, laser_returns_world
 from dem_graph.dem.traversability import traversability
 from dem_graph.dem.views import global_dem, local_dem, local_frame
 from dem_graph.errors import DatasetError, DemGraphError
@@ -226,7 +226,7 @@ def test_the_local_map_is_in_the_heading_frame_and_only_holds_what_was_known_the
     track = PoseTrack(np.array([0.0, 10.0]), np.stack([T_body, T_body]), np.zeros((2, 6, 6)))
     # a measurement 3.1 m ahead (world +y), 0.2 m above the body origin, and one from the future
     xyz = np.array([[9.9, 8.1, 2.2], [9.9, 8.1, 5.0]])  # local (3.1, 0.1)
-    ret = GroundReturns(xyz, np.full(2, 1e-4), np.array([1.0, 6.0]), np.array([LASER, MAP_POINT], np.uint8))
+    ret = GroundReturns(xyz, np.full(2, 1e-4), np.array([1.0, 6.0]), np.array([ReturnSource.LASER_RETURN, ReturnSource.MAP_POINT], np.uint8))
     dem = local_dem(ret, track, 5.0, (2.0, 4.0), 1.0, FusionConfig(resolution_m=0.5))
     assert dem.frame == "local"
     row, col, _ = dem.geometry.cell_index(3.1, 0.1)

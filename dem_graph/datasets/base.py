@@ -80,6 +80,10 @@ def read_ahead(items: Iterable[_Item], depth: int = 4) -> Iterator[_Item]:
         thread.join()
 
 
+# the streams every reader merges, in this order (:func:`merged_order`'s stream numbers)
+ODOMETRY_STREAM, LASER_STREAM, CAMERA_STREAM = 0, 1, 2
+
+
 def merged_order(*stream_times) -> list[tuple[int, int]]:
     """``(stream, index)`` of every item of the given time arrays, in time order; at equal times the
     stream given first comes first, then the lower index (the order every reader replays events in)."""

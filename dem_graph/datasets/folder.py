@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 import yaml
 
-from dem_graph.datasets.base import GroundTruth, Sequence, first_not_increasing, merged_order, read_ahead
+from dem_graph.datasets.base import LASER_STREAM, ODOMETRY_STREAM, GroundTruth, Sequence, first_not_increasing, merged_order, read_ahead
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.errors import ConfigError, DatasetError
 from dem_graph.geometry.rig import SensorRig, load_rig, save_rig
@@ -70,7 +70,6 @@ CAMERA_HEADER = ["index", "t_s", "file"]
 
 _POSE_TOL = 1e-6
 # merge priority at equal times
-_ODOMETRY, _LASER, _CAMERA = 0, 1, 2
 
 
 # ----------------------------------------------------------------------------------------------
@@ -373,7 +372,7 @@ class FolderSequence(Sequence):
             elevation = read_elevation(elevation_path) if elevation_path.exists() else None
             self._ground_truth = GroundTruth(trajectory, elevation)
 
-        self._order = merged_order(self._odo["t_s"], self._scan_t_s, self._frame_t_s)  # _ODOMETRY, _LASER, _CAMERA
+        self._order = merged_order(self._odo["t_s"], self._scan_t_s, self._frame_t_s)
 
     @property
     def rig(self) -> SensorRig:
@@ -421,7 +420,7 @@ class FolderSequence(Sequence):
         odo = self._odo
         images = read_ahead(_read_image(path) for path in self._frame_files)  # camera frames come in index order
         for kind, i in self._order:
-            if kind == _ODOMETRY:
+            if kind == ODOMETRY_STREAM:
                 yield Odometry(
                     float(odo["t_s"][i]),
                     float(odo["t_prev_s"][i]),
@@ -429,7 +428,7 @@ class FolderSequence(Sequence):
                     odo["covariance"][i].copy(),
                     i,
                 )
-            elif kind == _LASER:
+            elif kind == LASER_STREAM:
                 yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges_m[i].copy(), i)
             else:
                 yield CameraFrame(float(self._frame_t_s[i]), next(images), i)

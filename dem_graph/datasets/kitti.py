@@ -61,7 +61,7 @@ import cv2
 import numpy as np
 import yaml
 
-from dem_graph.datasets.base import GroundTruth, Sequence, first_not_increasing, merged_order, read_ahead
+from dem_graph.datasets.base import LASER_STREAM, ODOMETRY_STREAM, GroundTruth, Sequence, first_not_increasing, merged_order, read_ahead
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.datasets.velodyne import (
     RingLaser,
@@ -87,7 +87,6 @@ log = logging.getLogger(__name__)
 
 LIDAR_HEIGHT_M = 1.73  # KITTI's Velodyne above the road
 EARTH_RADIUS_M = 6378137.0
-_ODOMETRY, _LASER, _CAMERA = 0, 1, 2
 
 
 # ----------------------------------------------------------------------------------------------
@@ -249,7 +248,7 @@ class _KittiSequence(Sequence):
         )
         self._elevation: ElevationGrid | None = None
         self._ranges_cache: dict[int, np.ndarray] = {}  # scan index -> the ring's ranges
-        self._order = merged_order([o.t_s for o in odometry], scan_t_s, frame_t_s)  # _ODOMETRY, _LASER, _CAMERA
+        self._order = merged_order([o.t_s for o in odometry], scan_t_s, frame_t_s)
 
     def _make_ring_laser(self, ring: int | None, ground_distance_m: float, half_fov_deg: float, step_deg: float):
         if not self._scan_files:
@@ -342,9 +341,9 @@ class _KittiSequence(Sequence):
     def events(self) -> Iterator[Event]:
         images = read_ahead(_read_image(path) for path in self._frame_files)  # camera frames come in index order
         for kind, i in self._order:
-            if kind == _ODOMETRY:
+            if kind == ODOMETRY_STREAM:
                 yield self._odometry[i]
-            elif kind == _LASER:
+            elif kind == LASER_STREAM:
                 yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges(i), i)
             else:
                 yield CameraFrame(float(self._frame_t_s[i]), next(images), i)

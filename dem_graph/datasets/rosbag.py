@@ -32,7 +32,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dem_graph.datasets.base import Sequence, first_not_increasing, merged_order
+from dem_graph.datasets.base import LASER_STREAM, ODOMETRY_STREAM, Sequence, first_not_increasing, merged_order
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.errors import DatasetError, MissingDependencyError
 from dem_graph.geometry.rig import OdometrySpec, PlanarBeams, SensorRig
@@ -353,9 +353,9 @@ class RosbagSequence(Sequence):
             # ROS 2 bag's SQLite connection refuses to be used from another thread
             images = self._iter_images(reader)
             for kind, i in merged_order([o.t_s for o in self._odometry], self._scan_t_s, self._frame_t_s):
-                if kind == 0:
+                if kind == ODOMETRY_STREAM:
                     yield self._odometry[i]
-                elif kind == 1:
+                elif kind == LASER_STREAM:
                     yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges[i].copy(), i)
                 else:
                     t, image = next(images)

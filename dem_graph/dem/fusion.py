@@ -29,7 +29,7 @@ from pydantic import Field
 
 from dem_graph.config_types import StrictModel
 from dem_graph.dem.layers import Dem
-from dem_graph.dem.returns import LASER, GroundReturns
+from dem_graph.dem.returns import GroundReturns, ReturnSource
 from dem_graph.errors import DemGraphError
 from dem_graph.geometry.grid import GridGeometry
 
@@ -97,7 +97,7 @@ def fuse(returns: GroundReturns, geometry: GridGeometry, config: FusionConfig | 
     z = xyz[:, 2]
     var = np.maximum(var, config.min_variance_m2)
     t = np.asarray(returns.t_s, dtype=float)
-    laser = np.asarray(returns.source) == LASER
+    laser = np.asarray(returns.source) == ReturnSource.LASER_RETURN
     if not all_kept:  # compact only when something is left out (rare for a grid made to cover the data)
         cell, z, var, t, laser = cell[keep], z[keep], var[keep], t[keep], laser[keep]
     if len(z) == 0:

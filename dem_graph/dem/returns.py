@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from enum import IntEnum
 from functools import cached_property
 
 import numpy as np
@@ -27,8 +28,14 @@ from dem_graph.geometry.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
-LASER = 0
-MAP_POINT = 1
+
+
+class ReturnSource(IntEnum):
+    """What a ground measurement is (its value is the ``source`` column of ``cloud.ply``)."""
+
+    LASER_RETURN = 0  # one beam of a scan, placed with the pose at the scan's time
+    MAP_POINT = 1  # a point the estimator tracked (laser or camera seeded), at its last estimate
+
 
 
 @dataclass(frozen=True)
@@ -80,7 +87,7 @@ class GroundReturns:
     xyz_m: np.ndarray  # (N, 3) world
     var_z_m2: np.ndarray  # (N,)
     t_s: np.ndarray  # (N,) when measured (a map point: when it was created)
-    source: np.ndarray  # (N,) uint8: LASER or MAP_POINT
+    source: np.ndarray  # (N,) uint8: ReturnSource
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -152,7 +159,7 @@ def laser_returns_world(scan_t_s: np.ndarray, ranges_m: np.ndarray, rig: SensorR
     J = np.concatenate([np.cross(p_body, a), a], axis=1)
     var_pose = np.einsum("ni,nij,nj->n", J, P, J)
     var_range = (np.einsum("ni,ni->n", a, d_body[beam_idx]) * laser.range_sigma_m) ** 2
-    return GroundReturns(xyz, var_pose + var_range, scan_t_s[scan_idx], np.full(len(r), LASER, dtype=np.uint8))
+    return GroundReturns(xyz, var_pose + var_range, scan_t_s[scan_idx], np.full(len(r), ReturnSource.LASER_RETURN, dtype=np.uint8))
 
 
 def map_point_returns(xyz_m: np.ndarray, covariance: np.ndarray, created_t_s: np.ndarray) -> GroundReturns:
@@ -162,7 +169,7 @@ def map_point_returns(xyz_m: np.ndarray, covariance: np.ndarray, created_t_s: np
     t = np.asarray(created_t_s, dtype=float).reshape(-1)
     if not (len(xyz) == len(cov) == len(t)):
         raise DemGraphError(f"map point arrays disagree: {len(xyz)} positions, {len(cov)} covariances, {len(t)} times")
-    return GroundReturns(xyz, cov[:, 2, 2].copy(), t, np.full(len(t), MAP_POINT, dtype=np.uint8))
+    return GroundReturns(xyz, cov[:, 2, 2].copy(), t, np.full(len(t), ReturnSource.MAP_POINT, dtype=np.uint8))
 
 
-__all__ = ["GroundReturns", "LASER", "MAP_POINT", "PoseTrack", "laser_returns_world", "map_point_returns"]
+__all__ = ["GroundReturns", "PoseTrack", "ReturnSource", "laser_returns_world", "map_point_returns"]

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import abc
+import math
 from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.errors import EventOrderError
 from dem_graph.estimators.odometry import OdometryIntegrator
 from dem_graph.geometry.trajectory import Trajectory
 
@@ -18,7 +20,7 @@ class MapPoints:
     """Every point ever estimated, with its last estimate and covariance (world frame)."""
 
     point_id: list[int] = field(default_factory=list)
-    kind: list[int] = field(default_factory=list)  # 0 laser, 1 camera
+    kind: list[int] = field(default_factory=list)  # PointKind
     xyz: list[np.ndarray] = field(default_factory=list)
     covariance: list[np.ndarray] = field(default_factory=list)
     n_tracked: list[int] = field(default_factory=list)
@@ -105,34 +107,47 @@ class FrameDrivenEstimator(Estimator):
     """The event handling GM, PTPM and the graph share: scans are queued for the next frame, and with
     odometry a frame is held until the odometry covering its time has arrived (at most one odometry
     period later), so its motion is measured, not extrapolated. Subclasses set ``_odometry``,
-    ``_scans``, ``_pending_frame``, ``use_odometry`` and ``wait_for_odometry`` and implement
-    :meth:`_process`, which must clear ``_pending_frame``."""
+    ``_scans``, ``_pending_frame``, ``t_s``, ``use_odometry`` and ``wait_for_odometry`` and implement
+    :meth:`_process`, which must clear ``_pending_frame``. A frame not after the frame before it (or
+    before the start time) is an :class:`EventOrderError`."""
 
     _odometry: OdometryIntegrator
     _scans: list[LaserScan]
     _pending_frame: CameraFrame | None
+    t_s: float  # the time the estimate is at
     use_odometry: bool
     wait_for_odometry: bool
+
+    _last_frame_t_s: float | None = None  # the latest frame processed
 
     @abc.abstractmethod
     def _process(self, event: CameraFrame) -> FrameRecord: ...
 
+    def _process_in_order(self, event: CameraFrame) -> FrameRecord:
+        t_s, last = event.t_s, self._last_frame_t_s
+        if not math.isfinite(t_s) or (last is not None and t_s <= last) or t_s < self.t_s:
+            self._pending_frame = None
+            after = f"the frame before, at {last:.6f} s" if last is not None else f"the start, at {self.t_s:.6f} s"
+            raise EventOrderError(f"camera frame {event.index} at {t_s:.6f} s is not after {after}: frames must come in time order")
+        self._last_frame_t_s = t_s
+        return self._process(event)
+
     def on_odometry(self, event: Odometry) -> None:
         self._odometry.add(event)
         if self._pending_frame is not None and event.t_s >= self._pending_frame.t_s:
-            self._process(self._pending_frame)
+            self._process_in_order(self._pending_frame)
 
     def on_scan(self, event: LaserScan) -> None:
         self._scans.append(event)
 
     def on_frame(self, event: CameraFrame) -> FrameRecord | None:
         if self._pending_frame is not None:
-            self._process(self._pending_frame)
+            self._process_in_order(self._pending_frame)
         if self.use_odometry and self.wait_for_odometry and not self._odometry.covers(event.t_s):
             self._pending_frame = event
             return None
-        return self._process(event)
+        return self._process_in_order(event)
 
     def finish(self) -> None:
         if self._pending_frame is not None:
-            self._process(self._pending_frame)
+            self._process_in_order(self._pending_frame)

@@ -94,8 +94,6 @@ class EkfSlam(FrameDrivenEstimator):
     # --- prediction --------------------------------------------------------------------------
     def _predict(self, t_s: float) -> None:
         dt = t_s - self.t_s
-        if dt < 0:
-            raise ValueError("frames must come in time order")
         if self.use_odometry:
             U, Q = self._odometry.increment(t_s)
             self.state.predict_increment(U, Q, dt)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from dem_graph.frontend.frontend import LASER
+from dem_graph.frontend.frontend import PointKind
 from dem_graph.geometry.camera import PinholeCamera
 from dem_graph.geometry.se3 import invert, transform_points
 
@@ -112,7 +112,7 @@ def seed_factors(
       along the camera's ray, and the pixel it was seeded at, with ``sigma_seed_px``.
     """
     p = np.asarray(p_body, dtype=float).reshape(3)
-    if kind == LASER:
+    if kind == PointKind.LASER:
         return point_in_frame_factors(pose_key, point_key, p, Sigma_body)
     ray = p - np.asarray(T_body_cam)[:3, 3]
     range_m = float(np.linalg.norm(ray))

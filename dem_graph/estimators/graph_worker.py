@@ -34,6 +34,7 @@ from gtsam.symbol_shorthand import L, X
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
 from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
+from dem_graph.frontend.frontend import PointKind
 from dem_graph.geometry.camera import PinholeCamera
 
 
@@ -60,7 +61,7 @@ class GraphSetup:
 class NewLandmark:
     landmark: int
     X_world: np.ndarray  # initial guess, metres
-    kind: int  # LASER or CAMERA (frontend)
+    kind: PointKind
     p_body: np.ndarray  # the seed in the keyframe's body frame
     Sigma_body: np.ndarray  # 3x3
 

@@ -315,8 +315,6 @@ class Isam2Slam(FrameDrivenEstimator):
     # --- prediction --------------------------------------------------------------------------
     def _predict(self, t_s: float) -> np.ndarray:
         dt = t_s - self.t_s
-        if dt < 0:
-            raise ValueError("frames must come in time order")
         if self.use_odometry:
             U, Q = self._odometry.increment(t_s)
         else:

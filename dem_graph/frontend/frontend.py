@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
+from enum import IntEnum
 
 import numpy as np
 from pydantic import Field
@@ -26,7 +27,14 @@ from dem_graph.frontend.tracker import Patch, PatchTracker, TrackBatch, TrackerC
 from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.se3 import invert, transform_points
 
-LASER, CAMERA = 0, 1
+
+class PointKind(IntEnum):
+    """How a map point was seeded: on a laser return, or on the flat-ground guess at a focus cell
+    (its value is the ``kind`` column of ``points.ply``)."""
+
+    LASER = 0
+    CAMERA = 1
+
 _TRACK_COUNTER = {s: f"track_{s.name.lower()}" for s in TrackStatus}
 
 
@@ -77,7 +85,7 @@ def homographies_from_4_points(uv_src: np.ndarray, uv_dst: np.ndarray) -> np.nda
 @dataclass
 class PointTrack:
     point_id: int
-    kind: int  # LASER or CAMERA
+    kind: PointKind
     patch: Patch
     T_world_cam_source: np.ndarray  # camera pose estimate when the patch was taken
     created_t_s: float
@@ -91,7 +99,7 @@ class PointTrack:
 @dataclass
 class NewPoint:
     point_id: int
-    kind: int
+    kind: PointKind
     p_body: np.ndarray  # (3,) current body frame
     Sigma_body: np.ndarray  # (3,3)
 
@@ -191,11 +199,11 @@ class FrontEnd:
     def focus_area(self, speed_mps: float | None) -> FocusArea:
         return FocusArea.for_speed(self.config.focus, self.rig, speed_mps)
 
-    def _budget(self, kind: int) -> int:
+    def _budget(self, kind: PointKind) -> int:
         live = len(self.tracks)
         free = self.config.max_points - live
-        if kind == LASER:
-            n_laser = sum(1 for t in self.tracks.values() if t.kind == LASER)
+        if kind == PointKind.LASER:
+            n_laser = sum(1 for t in self.tracks.values() if t.kind == PointKind.LASER)
             free = min(free, self.config.max_laser_points - n_laser, self.config.laser_points_per_scan)
         return max(free, 0)
 
@@ -204,7 +212,7 @@ class FrontEnd:
             return True
         return bool(np.min(np.sum((occupied_uv - uv) ** 2, axis=1)) >= self.config.min_separation_px**2)
 
-    def _register(self, kind: int, image, uv, t_s, T_world_cam) -> int | None:
+    def _register(self, kind: PointKind, image, uv, t_s, T_world_cam) -> int | None:
         patch = self.tracker.make_patch(image, uv, t_s)
         if patch is None:
             self.counters["seed_untrackable"] += 1
@@ -212,13 +220,13 @@ class FrontEnd:
         point_id = self._next_id
         self._next_id += 1
         self.tracks[point_id] = PointTrack(point_id, kind, patch, np.array(T_world_cam), t_s)
-        self.counters["added_laser" if kind == LASER else "added_camera"] += 1
+        self.counters["added_laser" if kind == PointKind.LASER else "added_camera"] += 1
         return point_id
 
     def new_laser_points(self, ranges_m, T_body_laser_now: np.ndarray, image, t_s, T_world_body, focus: FocusArea, occupied_uv: np.ndarray) -> list[NewPoint]:
         """Points from one scan: ``T_body_laser_now`` places the laser (at the scan's time) in the
         current body frame (the paper's Eq. 2 with the spline-interpolated pose)."""
-        budget = self._budget(LASER)
+        budget = self._budget(PointKind.LASER)
         laser = self.rig.laser
         valid = np.isfinite(ranges_m) & (ranges_m >= laser.range_min_m) & (ranges_m <= laser.range_max_m)
         if budget == 0 or not valid.any():
@@ -238,13 +246,13 @@ class FrontEnd:
         R_ray = T_body_laser_now[:3, :3]
         sigma_r = laser.range_sigma_m
         out: list[NewPoint] = []
-        for k, point_id in self._seed(LASER, np.unique(order), uv, budget, occupied_uv, image, t_s, T_world_body):
+        for k, point_id in self._seed(PointKind.LASER, np.unique(order), uv, budget, occupied_uv, image, t_s, T_world_body):
             d = R_ray @ dirs[beams[k]]
             Sigma = sigma_r**2 * np.outer(d, d) + self.config.interpolation_sigma_m**2 * np.eye(3)
-            out.append(NewPoint(point_id, LASER, p_body[k], Sigma))
+            out.append(NewPoint(point_id, PointKind.LASER, p_body[k], Sigma))
         return out
 
-    def _seed(self, kind: int, candidates, uv: np.ndarray, budget: int, occupied_uv: np.ndarray, image, t_s: float, T_world_body: np.ndarray):
+    def _seed(self, kind: PointKind, candidates, uv: np.ndarray, budget: int, occupied_uv: np.ndarray, image, t_s: float, T_world_body: np.ndarray):
         """Yield ``(candidate index, new point id)`` for candidates in order, at most ``budget``, each
         at least ``min_separation_px`` from live and newly seeded points and with a trackable patch."""
         T_world_cam = T_world_body @ self.T_body_cam
@@ -264,7 +272,7 @@ class FrontEnd:
 
     def new_camera_points(self, image, t_s, T_world_body, focus: FocusArea, live_points_body: np.ndarray, occupied_uv: np.ndarray) -> list[NewPoint]:
         """Points at the empty focus cells, on the flat ground of the current body frame."""
-        budget = self._budget(CAMERA)
+        budget = self._budget(PointKind.CAMERA)
         if budget == 0:
             return []
         cells = focus.cell_centers_body()
@@ -280,7 +288,7 @@ class FrontEnd:
         free, uv = free[ok], uv[ok]
         o = self.T_body_cam[:3, 3]
         out: list[NewPoint] = []
-        for k, point_id in self._seed(CAMERA, range(len(free)), uv, budget, occupied_uv, image, t_s, T_world_body):
+        for k, point_id in self._seed(PointKind.CAMERA, range(len(free)), uv, budget, occupied_uv, image, t_s, T_world_body):
             p = cells[free[k]]
             ray = p - o
             depth = np.linalg.norm(ray)
@@ -289,7 +297,7 @@ class FrontEnd:
             sigma_along = self.config.camera_point_sigma_height_m / sin_elev
             sigma_across = self.config.camera_point_sigma_px * depth / self.camera.fx_px
             Sigma = sigma_along**2 * np.outer(r, r) + sigma_across**2 * (np.eye(3) - np.outer(r, r))
-            out.append(NewPoint(point_id, CAMERA, p, Sigma))
+            out.append(NewPoint(point_id, PointKind.CAMERA, p, Sigma))
         return out
 
     def drop_points(self, point_ids, X_world: np.ndarray, T_world_body: np.ndarray, archive) -> tuple[np.ndarray, np.ndarray]:

@@ -6,7 +6,7 @@ then one scalar property per attribute, its PLY type given by the array's dtype:
     float32 -> float    float64 -> double    int32 -> int     uint32 -> uint
     int16   -> short    uint16  -> ushort    int8  -> char    uint8  -> uchar
 
-e.g. ``variance_z_m2`` (float32), ``source`` (uint8: 0 laser, 1 camera), ``point_id`` (int32).
+e.g. ``variance_z_m2`` (float32), ``kind`` (uint8), ``point_id`` (int32).
 Open3D (``open3d.t.io.read_point_cloud``), CloudCompare and MeshLab read these files.
 
 :func:`read_points_ply` also reads binary big-endian files, ``float`` x/y/z and files with other

@@ -19,7 +19,7 @@ import numpy as np
 
 from dem_graph.datasets.base import GroundTruth, Sequence
 from dem_graph.dem.layers import Dem
-from dem_graph.dem.returns import GroundReturns, PoseTrack, laser_returns_world, map_point_returns
+from dem_graph.dem.returns import GroundReturns, PoseTrack, ReturnSource, laser_returns_world, map_point_returns
 from dem_graph.dem.views import global_dem, local_dem, speed_at
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators.base import EstimatorResult
@@ -111,7 +111,7 @@ def make_run_dem(
         "resolution_m": config.fusion.resolution_m,
         "grid_shape": list(dem.geometry.shape),
         "measurements": len(returns),
-        "laser_returns": int(np.sum(returns.source == 0)),
+        "laser_returns": int(np.sum(returns.source == ReturnSource.LASER_RETURN)),
         "fused": dem.n_used,
         "covered_cells": int(dem.covered.sum()),
         "rebuild_s": rebuild_s,
