@@ -167,31 +167,16 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_
 @_friendly_errors
 def dem(run_dir, dataset, at_s, resolution_m, out_dir) -> None:
     """Make a run's DEM again from its poses (global, or the local map at a time)."""
-    from dem_graph.datasets.open import reopen_dataset
-    from dem_graph.errors import DatasetError
-    from dem_graph.pipeline.run_folder import METRICS_JSON, read_run_metrics, run_folder_config, run_folder_dem, write_run_dem
+    from dem_graph.pipeline.run_folder import remake_dem, write_run_dem
 
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise DatasetError(run_dir, "run folder not found")
-    config = run_folder_config(run_dir)
-    metrics_path = run_dir / METRICS_JSON
-    recorded = read_run_metrics(run_dir)
-    if dataset is None:
-        dataset = recorded.get("dataset")
-        if not dataset:
-            raise DatasetError(metrics_path, "names no dataset: give --dataset")
-    if resolution_m is not None:
-        config.dem.fusion.resolution_m = resolution_m
-    sequence = reopen_dataset(Path(dataset), recorded.get("dataset_options"))  # the run's KITTI ring, ...
-    result = run_folder_dem(run_dir, sequence, at_s, config)
+    result = remake_dem(run_dir, dataset, at_s, resolution_m)
     out_dir = out_dir or (run_dir if at_s is None else run_dir / f"dem_at_{at_s:g}")
     paths = write_run_dem(result, out_dir)
     m = result.metrics
-    click.echo(f"DEM ({result.dem.frame}): {m['covered_cells']} cells of {config.dem.fusion.resolution_m:g} m covered")
-    if "height_error_laser_cells" in m:
-        e, c = m["height_error_laser_cells"], m["corridor"]
-        click.echo(f"height RMSE {100 * e['rmse_m']:.1f} cm over the laser-swept cells; corridor {100 * c['coverage']:.0f} % covered")
+    click.echo(f"DEM ({result.dem.frame}): {m.covered_cells} cells of {result.dem.geometry.resolution_m:g} m covered")
+    e, c = getattr(m, "height_error_laser_cells", None), getattr(m, "corridor", None)
+    if e is not None and c is not None:
+        click.echo(f"height RMSE {100 * e.rmse_m:.1f} cm over the laser-swept cells; corridor {100 * c.coverage:.0f} % covered")
     click.echo(f"written: {', '.join(str(p) for p in paths.values())}")
 
 

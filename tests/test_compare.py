@@ -6,14 +6,20 @@ import base64
 import json
 import math
 import re
+import typing
 
 import pytest
 from click.testing import CliRunner
+from pydantic import BaseModel, ValidationError
 
 from dem_graph.cli import main
 from dem_graph.datasets import FolderSequence
 from dem_graph.errors import DemGraphError
+from dem_graph.evaluation.trajectory_metrics import RpeSummary, TrajectoryAccuracy
 from dem_graph.pipeline import ESTIMATORS, RunConfig
+from dem_graph.pipeline.metrics import RunMetrics
+from dem_graph.pipeline.run_dem import DemFailure
+from dem_graph.pipeline.run_folder import json_text
 from dem_graph.studies import compare as compare_module
 from dem_graph.studies.compare import compare, parse_estimators
 from dem_graph.studies.headline import COLUMNS, format_value, headline, metric_at
@@ -41,7 +47,7 @@ def test_summary_numbers_equal_each_run_folders_metrics(comparison):
         assert entry["status"] == "ok" and entry["error"] is None
         metrics = json.loads((comparison.out_dir / name / "metrics.json").read_text())
         for column in COLUMNS:
-            assert _same(entry["headline"][column.key], metrics_value := metric_at(metrics, column.path)), (name, column.key, metrics_value)
+            assert _same(entry["headline"][column.key], metrics_value := metric_at(RunMetrics.model_validate(metrics), column.path)), (name, column.key, metrics_value)
         # the numbers every run of this log has (ground truth and elevation): exactly those of metrics.json
         assert entry["headline"]["ate_anchored_rmse_m"] == metrics["trajectory"]["ate_rmse_m"] > 0.0
         assert entry["headline"]["dem_rmse_laser_cells_m"] == metrics["dem"]["height_error_laser_cells"]["rmse_m"] > 0.0
@@ -131,10 +137,54 @@ def test_compare_bad_input_is_one_line(tiny_folder, tmp_path):
     assert r.exit_code == 2 and r.stderr.count("\n") == 1 and f"{tmp_path / 'none'}: dataset folder not found" in r.stderr
 
 
+def _accuracy(ate_m: float, rpe_m: float) -> TrajectoryAccuracy:
+    rpe = RpeSummary(delta_m=10.0, pairs=0, translation_rmse_m=rpe_m, translation_mean_m=rpe_m, translation_max_m=rpe_m, translation_rmse_percent=rpe_m, rotation_rmse_deg=rpe_m, reason="short")
+    return TrajectoryAccuracy(ate_rmse_m=ate_m, ate_max_m=ate_m, rotation_rmse_deg=0.1, final_error_m=ate_m, distance_m=5.0, drift_percent=1.0, n_poses=3, ate_aligned_rmse_m=ate_m, rpe=rpe)
+
+
 def test_headline_reads_nested_numbers_and_nan_for_the_rest():
-    metrics = {"trajectory": {"ate_rmse_m": 0.25, "rpe": {"translation_rmse_m": None}}, "dem": {"error": "no DEM"}}
+    metrics = RunMetrics(trajectory=_accuracy(0.25, math.nan), dem=DemFailure(error="no DEM"))
     assert metric_at(metrics, ("trajectory", "ate_rmse_m")) == 0.25
     assert math.isnan(metric_at(metrics, ("trajectory", "rpe", "translation_rmse_m")))
-    assert math.isnan(metric_at(metrics, ("dem", "height_error_laser_cells", "rmse_m")))
+    assert math.isnan(metric_at(metrics, ("dem", "height_error_laser_cells", "rmse_m")))  # no DEM: not measured
+    assert math.isnan(metric_at(metrics, ("time_per_frame", "total", "median_ms")))  # no frame
     dem = next(c for c in COLUMNS if c.key == "dem_rmse_laser_cells_m")
     assert format_value(dem, 0.01234) == "1.23" and format_value(dem, math.nan) == "-"
+
+
+def _field_type(model, name: str):
+    """The type of field ``name`` of ``model``, through Optional and unions (the measured form, not the failure's)."""
+    annotation = typing.get_type_hints(model)[name]
+    args = [a for a in typing.get_args(annotation) if a is not type(None)] or [annotation]
+    models = [a for a in args if isinstance(a, type) and issubclass(a, BaseModel) and a is not DemFailure]
+    return models[0] if models else args[0]
+
+
+@pytest.mark.parametrize("column", COLUMNS, ids=lambda c: c.key)
+def test_every_column_names_a_number_field_of_the_metrics(column):
+    """Walked through the types, not a sample: a renamed field fails here instead of printing `-`."""
+    kind = RunMetrics
+    for key in column.path:
+        if typing.get_origin(kind) is dict:  # a dict's key (time_per_frame's phases)
+            kind = typing.get_args(kind)[1]
+            continue
+        assert isinstance(kind, type) and issubclass(kind, BaseModel) and key in kind.model_fields, (column.key, key)
+        kind = _field_type(kind, key)
+    assert kind in (float, int) or typing.get_origin(kind) is typing.Annotated and typing.get_args(kind)[0] is float, (column.key, kind)
+
+
+def test_a_path_that_names_no_field_is_an_error():
+    metrics = RunMetrics(trajectory=_accuracy(0.25, 0.1))
+    with pytest.raises(AttributeError, match="ate_rmse"):
+        metric_at(metrics, ("trajectory", "ate_rmse"))
+    with pytest.raises(ValidationError):
+        RunMetrics.model_validate({"trajectroy": {}})  # a key the metrics do not have
+
+
+def test_metrics_json_is_the_typed_metrics_and_reads_back(comparison):
+    """Each run folder's metrics.json is its RunMetrics as JSON; read back, it is the same metrics."""
+    for run in comparison.runs:
+        path = comparison.out_dir / run.estimator / "metrics.json"
+        text = path.read_text()
+        assert text == json_text(run.metrics.to_json_dict())
+        assert json_text(RunMetrics.model_validate(json.loads(text)).to_json_dict()) == text

@@ -29,16 +29,16 @@ def test_with_ground_truth_poses_the_smoke_dem_and_its_local_window_are_within_t
     run_dem = make_run_dem(returns, poses, smoke_log.ground_truth, local_error=LocalErrorConfig(every_n_frames=1))
     m = run_dem.metrics
     sigma = smoke_log.rig.laser.range_sigma_m
-    assert m["height_error_laser_cells"]["cells"] > 500
-    assert m["height_error_laser_cells"]["rmse_m"] < 0.5 * sigma
-    lw = m["local_window"]
-    assert lw["frames_with_data"] > 0.8 * lw["frames"]
+    assert m.height_error_laser_cells.cells > 500
+    assert m.height_error_laser_cells.rmse_m < 0.5 * sigma
+    lw = m.local_window
+    assert lw.frames_with_data > 0.8 * lw.frames
     # exact poses: the paper's measure and the vehicle-relative one agree, and both are unbiased
     series = run_dem.local_series
     ok = np.isfinite(series.mean_m)
     np.testing.assert_allclose(series.mean_m[ok], series.relative_mean_m[ok], atol=1e-5)
-    assert lw["mean_abs_mean_m"] < 0.25 * sigma
-    assert lw["mean_of_std_m"] < sigma
+    assert lw.mean_abs_mean_m < 0.25 * sigma
+    assert lw.mean_of_std_m < sigma
     # the run folder keeps the series frame by frame (Fig. 8 for one run), to the digits written
     paths = write_run_dem(run_dem, tmp_path)
     table = np.genfromtxt(paths["local_dem_error"], delimiter=",", names=True)
@@ -119,9 +119,9 @@ def test_a_run_without_any_laser_return_makes_its_dem_from_the_map_points_alone(
     blind = smoke_log.replace_events([replace(e, ranges_m=e.ranges_m * np.nan) if isinstance(e, LaserScan) else e for e in smoke_log.events()])
     run = run_estimator(blind, RunConfig(estimator="ptpm", max_frames=20))
     assert run.error is None
-    d = run.metrics["dem"]
-    assert d["laser_returns"] == 0
-    assert d["measurements"] == run.metrics["map_points"] > 0
+    d = run.metrics.dem
+    assert d.laser_returns == 0
+    assert d.measurements == run.metrics.map_points > 0
     dem = run.dem.dem
     assert np.all(dem.layers["laser_count"] == 0)
     assert np.all(np.isfinite(dem.variance[dem.covered]))

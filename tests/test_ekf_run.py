@@ -22,14 +22,14 @@ def runs(smoke_log):
 @pytest.mark.parametrize("name", ["gm", "ptpm"])
 def test_accuracy_with_odometry(runs, name):
     m = runs[name].metrics
-    tr = m["trajectory"]
+    tr = m.trajectory
     assert runs[name].error is None
-    assert m["frames"] == 65
+    assert m.frames == 65
     # the issue's goal with odometry: drift below 1 % of the distance travelled
-    assert tr["drift_percent"] < 1.0
-    assert tr["ate_rmse_m"] < 0.03
+    assert tr.drift_percent < 1.0
+    assert tr.ate_rmse_m < 0.03
     # it tracks what the cap allows
-    assert m["points_per_frame"]["tracked_median"] > 80
+    assert m.points_per_frame.tracked_median > 80
 
 
 @pytest.mark.parametrize("name", ["gm", "ptpm"])
@@ -37,16 +37,16 @@ def test_pose_uncertainty_is_consistent(runs, name):
     """NEES of the pose against the truth: inside the two-sided chi-square(6) 95 % interval for most
     frames and (nearly) never above it; its median near chi-square(6)'s (5.3). Measured on this
     log: GM 83 % inside, median 2.3; PTPM 89 %, 3.0; both 100 % below the upper bound."""
-    nees = runs[name].metrics["pose_nees"]
-    assert nees["fraction_within_95"] > 0.75
-    assert nees["fraction_below_upper_95"] > 0.95
-    assert 1.0 < nees["median"] < 12.0
+    nees = runs[name].metrics.pose_nees
+    assert nees.fraction_within_95 > 0.75
+    assert nees.fraction_below_upper_95 > 0.95
+    assert 1.0 < nees.median < 12.0
 
 
 def test_without_odometry_constant_velocity(smoke_log):
     run = _run(smoke_log, "ptpm", motion={"model": "constant_velocity", "initial_speed_mps": 1.5})
     # the issue's goal without odometry: drift below 3 %
-    assert run.metrics["trajectory"]["drift_percent"] < 3.0
+    assert run.metrics.trajectory.drift_percent < 3.0
 
 
 @pytest.mark.parametrize("model, min_shrink", [("odometry", 1.1), ("constant_velocity", 3.0)])
@@ -81,11 +81,11 @@ def test_ptpm_rejects_more_false_matches_than_gm(smoke_log):
     counts, drift = {}, {}
     for name in ("gm", "ptpm"):
         run = _run(smoke_log, name, false_matches={"fraction": 0.1, "offset_px": 12.0})
-        ev = run.metrics["events"]
+        ev = run.metrics.events
         assert ev["injected"] > 300
         counts[name] = ev.get("injected_rejected", 0) / ev["injected"]
-        assert run.error is None and run.metrics["frames"] == 65
-        drift[name] = run.metrics["trajectory"]["drift_percent"]
+        assert run.error is None and run.metrics.frames == 65
+        drift[name] = run.metrics.trajectory.drift_percent
     # PTPM refuses them and keeps the accuracy goal; GM takes them in and pays for it
     assert drift["ptpm"] < 1.0
     assert drift["gm"] > drift["ptpm"]
@@ -106,7 +106,7 @@ def test_blank_and_occluded_frames_are_skipped_measurements(smoke_log):
             e = CameraFrame(e.t_s, img, e.index)
         events.append(e)
     run = run_estimator(smoke_log.replace_events(events), RunConfig(estimator="ptpm"))
-    ev = run.metrics["events"]
-    assert run.error is None and run.metrics["frames"] == 65
+    ev = run.metrics.events
+    assert run.error is None and run.metrics.frames == 65
     assert ev.get("track_low_texture", 0) + ev.get("track_low_score", 0) > 200
-    assert run.metrics["trajectory"]["drift_percent"] < 2.0
+    assert run.metrics.trajectory.drift_percent < 2.0

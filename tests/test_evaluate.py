@@ -59,15 +59,15 @@ def test_known_answers_the_truth_itself_and_the_truth_moved(tiny_folder, tmp_pat
         folder.mkdir()
         write_tum(folder / "trajectory.tum", trajectory)
     m = evaluate_run(exact, tiny_folder).metrics  # a folder path will do
-    assert m["trajectory"]["ate_rmse_m"] == pytest.approx(0.0, abs=1e-9)
-    assert m["trajectory"]["ate_aligned_rmse_m"] == pytest.approx(0.0, abs=1e-9)
-    assert m["trajectory"]["rotation_rmse_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert m.trajectory.ate_rmse_m == pytest.approx(0.0, abs=1e-9)
+    assert m.trajectory.ate_aligned_rmse_m == pytest.approx(0.0, abs=1e-9)
+    assert m.trajectory.rotation_rmse_deg == pytest.approx(0.0, abs=1e-6)
     # no poses.npz: no DEM, and the reason
-    assert "no poses.npz" in m["dem"]["error"]
+    assert "no poses.npz" in m.dem.error
     m = evaluate_run(moved, sequence).metrics
-    assert m["trajectory"]["ate_rmse_m"] == pytest.approx(0.5, abs=1e-9)
-    assert m["trajectory"]["ate_aligned_rmse_m"] == pytest.approx(0.0, abs=1e-9)
-    assert np.isnan(m["trajectory"]["rpe"]["translation_rmse_m"])
+    assert m.trajectory.ate_rmse_m == pytest.approx(0.5, abs=1e-9)
+    assert m.trajectory.ate_aligned_rmse_m == pytest.approx(0.0, abs=1e-9)
+    assert np.isnan(m.trajectory.rpe.translation_rmse_m)
 
 
 @pytest.fixture

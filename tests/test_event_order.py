@@ -27,8 +27,8 @@ def test_a_frame_from_the_past_stops_the_run_and_keeps_what_was_done(smoke_log, 
     bad = _with_a_frame_from_the_past(smoke_log)
     run = run_dataset(bad, out_dir=tmp_path / "run") if estimator == "ptpm" else run_estimator(bad, RunConfig(estimator=estimator))
     assert "camera frame 9 at" in run.error and "is not after the frame before" in run.error
-    assert run.metrics["frames"] == GOOD_FRAMES and run.metrics["error"] == run.error
-    assert run.dem is not None and run.metrics["dem"]["laser_returns"] > 0
+    assert run.metrics.frames == GOOD_FRAMES and run.metrics.error == run.error
+    assert run.dem is not None and run.metrics.dem.laser_returns > 0
     if estimator == "ptpm":  # the run folder holds the frames before the error
         assert len(read_tum(tmp_path / "run" / "trajectory.tum")) == GOOD_FRAMES
     if estimator != "isam2-batch":  # (the batch smooths only a finished log: its frames are the online pass's)

@@ -207,8 +207,8 @@ def test_a_run_with_the_graph_in_a_second_process(smoke_log):
     meets the same goals as in-process (drift under 1 %, ATE under 3 cm)."""
     run = run_estimator(smoke_log, RunConfig.model_validate({"estimator": "isam2", "isam2": {"graph_process": True}}))
     m = run.metrics
-    assert run.error is None and m["frames"] == 65
-    assert m["trajectory"]["drift_percent"] < 1.0
-    assert m["trajectory"]["ate_rmse_m"] < 0.03
-    assert m["trajectory_smoothed"]["ate_rmse_m"] < 0.03
-    assert "graph_lag_keyframes_median" in m["events"]
+    assert run.error is None and m.frames == 65
+    assert m.trajectory.drift_percent < 1.0
+    assert m.trajectory.ate_rmse_m < 0.03
+    assert m.trajectory_smoothed.ate_rmse_m < 0.03
+    assert "graph_lag_keyframes_median" in m.events

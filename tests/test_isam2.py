@@ -95,13 +95,13 @@ def test_noiseless_flat_ground_recovers_poses_and_points_to_1mm(noiseless_flat_l
 
 def test_accuracy_with_odometry(isam2_run):
     m = isam2_run.metrics
-    assert isam2_run.error is None and m["frames"] == 65
+    assert isam2_run.error is None and m.frames == 65
     # the EKF's goals on the same log (test_ekf_run): drift below 1 %, ATE below 3 cm
-    assert m["trajectory"]["drift_percent"] < 1.0
-    assert m["trajectory"]["ate_rmse_m"] < 0.03
-    assert m["points_per_frame"]["tracked_median"] > 80
+    assert m.trajectory.drift_percent < 1.0
+    assert m.trajectory.ate_rmse_m < 0.03
+    assert m.points_per_frame.tracked_median > 80
     # the trajectory smoothed at the end is written next to the per-frame one, as accurate
-    assert m["trajectory_smoothed"]["ate_rmse_m"] < 0.03
+    assert m.trajectory_smoothed.ate_rmse_m < 0.03
 
 
 def test_keyframes_and_window_stay_bounded(smoke_log):
@@ -131,18 +131,18 @@ def test_keyframes_and_window_stay_bounded(smoke_log):
 
 def test_constant_velocity_without_odometry(smoke_log):
     run = _run(smoke_log, motion={"model": "constant_velocity", "initial_speed_mps": 1.5})
-    assert run.error is None and run.metrics["frames"] == 65
+    assert run.error is None and run.metrics.frames == 65
     # the EKF's goal without odometry: drift below 3 %
-    assert run.metrics["trajectory"]["drift_percent"] < 3.0
+    assert run.metrics.trajectory.drift_percent < 3.0
 
 
 def test_wrong_matches_barely_move_the_estimate(smoke_log, isam2_run):
     """10 % of matches replaced by ones 12 px away: the gate and the outlier test drop them, the
     Huber kernel bounds what gets through; the ATE grows by less than 20 % (the issue's bound)."""
     run = _run(smoke_log, false_matches={"fraction": 0.1, "offset_px": 12.0})
-    ev = run.metrics["events"]
+    ev = run.metrics.events
     assert ev["injected"] > 300
-    assert run.metrics["trajectory"]["ate_rmse_m"] < 1.2 * isam2_run.metrics["trajectory"]["ate_rmse_m"]
+    assert run.metrics.trajectory.ate_rmse_m < 1.2 * isam2_run.metrics.trajectory.ate_rmse_m
 
 
 # --- degenerate input --------------------------------------------------------------------------
@@ -167,7 +167,7 @@ def test_frames_with_nothing_trackable(smoke_log):
     frames = run.estimator.frames
     assert run.error is None and len(frames) == 65
     assert all(f.n_tracked == 0 for f in frames[20:25])
-    assert run.metrics["trajectory"]["drift_percent"] < 2.0
+    assert run.metrics.trajectory.drift_percent < 2.0
 
 
 def test_camera_blackout_of_a_second(smoke_log):
@@ -189,8 +189,8 @@ def test_laser_gap(smoke_log):
     """No scan for 1 s: only camera points enter; the run goes on with its accuracy."""
     log = _edit(smoke_log, scan=lambda e: None if 0.6 <= e.t_s < 1.6 else e)
     run = _run(log)
-    assert run.error is None and run.metrics["frames"] == 65
-    assert run.metrics["trajectory"]["drift_percent"] < 1.0
+    assert run.error is None and run.metrics.frames == 65
+    assert run.metrics.trajectory.drift_percent < 1.0
 
 
 # --- batch -------------------------------------------------------------------------------------
@@ -199,8 +199,8 @@ def test_laser_gap(smoke_log):
 def test_batch_smooths_every_observation(smoke_log):
     run = _run(smoke_log, "isam2-batch")
     m = run.metrics
-    assert run.error is None and m["frames"] == 65
-    ev = m["events"]
+    assert run.error is None and m.frames == 65
+    ev = m.events
     # the online pass makes a keyframe every 5 frames, or sooner when the map runs short of points: on
     # this short log points leave the view fast and it made 46 keyframes of 65 frames (isam2: 65)
     assert Isam2Config(batch=True).keyframe_spacing == 5 and Isam2Config().keyframe_spacing == 1
@@ -208,14 +208,14 @@ def test_batch_smooths_every_observation(smoke_log):
     # yet the batch has one projection factor per inlier observation of every frame, not only the keyframes'
     assert ev["batch_factors"] > ev["track_ok"] - ev.get("outlier_rejected", 0)
     # the EKF's goals on this log (test_ekf_run), as for isam2
-    assert m["trajectory"]["drift_percent"] < 1.0
-    assert m["trajectory"]["ate_rmse_m"] < 0.03
+    assert m.trajectory.drift_percent < 1.0
+    assert m.trajectory.ate_rmse_m < 0.03
 
 
 def test_batch_online_pass_is_the_online_estimator_at_its_spacing(smoke_log, isam2_run):
     # with the online estimator's keyframe spacing, the batch's online pass is that estimator, to the bit
     run = _run(smoke_log, "isam2-batch", isam2={"batch_keyframe_every": 1})
-    assert run.metrics["trajectory_online"]["ate_rmse_m"] == pytest.approx(isam2_run.metrics["trajectory"]["ate_rmse_m"], rel=1e-9)
+    assert run.metrics.trajectory_online.ate_rmse_m == pytest.approx(isam2_run.metrics.trajectory.ate_rmse_m, rel=1e-9)
     # --keyframe-every sets the spacing of the run's own estimator only
     assert run_config(overrides=RunOverrides(estimator="isam2-batch", keyframe_every=3)).isam2.batch_keyframe_every == 3
     assert run_config(overrides=RunOverrides(estimator="isam2-batch", keyframe_every=3)).isam2.keyframe_every == 1
@@ -239,9 +239,9 @@ def test_a_failed_graph_update_restarts_the_smoother(smoke_log, monkeypatch):
 
     monkeypatch.setattr(keyframe_graph.KeyframeGraph, "update", failing_once)
     run = _run(smoke_log)
-    assert run.error is None and run.metrics["frames"] == 65
-    assert run.metrics["events"]["graph_restarts"] == 1
-    assert run.metrics["trajectory"]["drift_percent"] < 1.0
+    assert run.error is None and run.metrics.frames == 65
+    assert run.metrics.events["graph_restarts"] == 1
+    assert run.metrics.trajectory.drift_percent < 1.0
 
 
 def test_search_regions_match_the_smoothers_marginals(smoke_log):

@@ -64,9 +64,9 @@ def test_an_estimator_runs_on_the_first_frames(kitti_sequence):
     run = run_estimator(kitti_sequence, config)
     assert run.error is None
     m = run.metrics
-    assert m["frames"] == 12 and m["points_per_frame"]["tracked_median"] > 10
-    assert m["trajectory"]["distance_m"] > 10.0
-    assert m["trajectory"]["ate_rmse_m"] < 1.0  # 15 m driven without odometry
+    assert m.frames == 12 and m.points_per_frame.tracked_median > 10
+    assert m.trajectory.distance_m > 10.0
+    assert m.trajectory.ate_rmse_m < 1.0  # 15 m driven without odometry
 
 
 def test_starting_speed_from_the_first_two_scans(kitti_sequence):

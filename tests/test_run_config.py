@@ -48,7 +48,7 @@ def test_an_estimator_run_without_a_configuration_takes_the_datasets_settings(sm
     seq = _with_settings(smoke_log, {"frontend": {"max_points": 7}})
     run = run_estimator(seq, with_dem=False)
     assert run.config.frontend.max_points == 7
-    assert run.metrics["points_per_frame"]["live_max"] <= 7
+    assert run.metrics.points_per_frame.live_max <= 7
 
 
 def test_a_file_from_before_the_fig8_section_still_reads(tmp_path):
@@ -79,7 +79,7 @@ def test_the_command_and_the_library_run_the_same_on_a_simulated_log(tiny_folder
     cli_out, lib_out, run = _command_and_library(tiny_folder, tmp_path, ["--estimator", "isam2"], RunOverrides(estimator="isam2"))
     assert (cli_out / "trajectory.tum").read_bytes() == (lib_out / "trajectory.tum").read_bytes()
     assert (cli_out / "config.yaml").read_text() == (lib_out / "config.yaml").read_text()
-    assert len(read_tum(lib_out / "trajectory.tum")) == run.metrics["frames"] == 8
+    assert len(read_tum(lib_out / "trajectory.tum")) == run.metrics.frames == 8
 
 
 @pytest.mark.shared_data
@@ -91,5 +91,5 @@ def test_the_command_and_the_library_run_the_same_on_kitti(kitti_sample, tmp_pat
     assert (cli_out / "trajectory.tum").read_bytes() == (lib_out / "trajectory.tum").read_bytes()
     assert run.config.motion.initial_speed_mps == pytest.approx(12.6, abs=0.3)  # the first two scans' speed, as the command's
     assert run.config.frontend.tracker.max_search_half_size_px == 80  # datasets/settings/kitti.yaml
-    assert run.metrics["points_per_frame"]["tracked_median"] > 10
-    assert run.metrics["trajectory"]["ate_rmse_m"] < 1.0  # 20 m driven
+    assert run.metrics.points_per_frame.tracked_median > 10
+    assert run.metrics.trajectory.ate_rmse_m < 1.0  # 20 m driven

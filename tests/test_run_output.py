@@ -91,9 +91,9 @@ def test_frame_timing_summary():
     per_frame = {"total": [0.010, 0.020, 0.030, 0.040], "update": [0.001] * 5, "tracking": []}
     summary = frame_timing_summary(per_frame)
     assert list(summary) == ["total", "update", "tracking"]
-    assert summary["total"]["median_ms"] == pytest.approx(25.0)
-    assert summary["total"]["mean_ms"] == pytest.approx(25.0)
-    assert summary["total"]["p95_ms"] == pytest.approx(np.percentile([10, 20, 30, 40], 95))
-    assert summary["update"] == pytest.approx({"median_ms": 1.0, "p95_ms": 1.0, "mean_ms": 1.0})
-    assert all(math.isnan(v) for v in summary["tracking"].values())
-    assert all(type(v) is float for s in summary.values() for v in s.values())
+    assert summary["total"].median_ms == pytest.approx(25.0)
+    assert summary["total"].mean_ms == pytest.approx(25.0)
+    assert summary["total"].p95_ms == pytest.approx(np.percentile([10, 20, 30, 40], 95))
+    assert summary["update"].to_json_dict() == pytest.approx({"median_ms": 1.0, "p95_ms": 1.0, "mean_ms": 1.0})
+    assert all(math.isnan(v) for v in summary["tracking"].to_json_dict().values())
+    assert all(type(v) is float for s in summary.values() for v in s.to_json_dict().values())

@@ -263,7 +263,7 @@ def test_rpe_of_a_constant_scale_error_is_known():
     np.testing.assert_array_equal(rpe.pairs[:, 1] - rpe.pairs[:, 0], 20)
     np.testing.assert_allclose(rpe.translation_error_m, 0.2, atol=1e-12)
     np.testing.assert_allclose(rpe.rotation_error_deg, 0.0, atol=1e-9)
-    d = rpe.as_dict()
+    d = rpe.summary().to_json_dict()
     assert d["translation_rmse_m"] == pytest.approx(0.2, abs=1e-12)
     assert d["translation_rmse_percent"] == pytest.approx(2.0, abs=1e-10)
     assert d["reason"] is None
@@ -300,7 +300,7 @@ def test_rpe_ignores_an_error_made_before_the_pair():
 def test_rpe_of_a_run_shorter_than_the_distance_is_nan_with_a_reason(length_m):
     truth = straight_truth(length_m=length_m)
     rpe = relative_pose_errors(truth, truth, delta_m=10.0)
-    d = rpe.as_dict()
+    d = rpe.summary().to_json_dict()
     assert d["pairs"] == 0
     assert np.isnan(d["translation_rmse_m"]) and np.isnan(d["rotation_rmse_deg"])
     assert f"{length_m:.2f} m" in d["reason"] and "less than the RPE's 10 m" in d["reason"]
@@ -323,11 +323,11 @@ def test_aligned_ate_of_the_truth_moved_by_a_rigid_transform_is_zero():
 def test_accuracy_summary_gathers_every_number():
     truth = straight_truth()
     estimate = Trajectory(truth.t_s, truth.positions_xyz * [1.02, 1.0, 1.0], truth.orientations_quat_xyzw)
-    d = accuracy_summary(estimate, truth)
+    d = accuracy_summary(estimate, truth).to_json_dict()
     assert d["drift_percent"] == pytest.approx(2.0, abs=1e-10)
     assert d["ate_rmse_m"] == trajectory_metrics(estimate, truth).ate_rmse_m
     assert d["ate_aligned_rmse_m"] == ate_aligned_rmse_m(estimate, truth)
-    assert d["rpe"] == relative_pose_errors(estimate, truth, 10.0).as_dict()
+    assert d["rpe"] == relative_pose_errors(estimate, truth, 10.0).summary().to_json_dict()
     assert d["rpe"]["delta_m"] == 10.0
 
 
@@ -384,12 +384,12 @@ def test_ate_and_rpe_match_evo_on_the_same_tum_files(tmp_path):
 
     truth_back, estimate_back = read_tum(tmp_path / "truth.tum"), read_tum(tmp_path / "estimate.tum")
     ours = accuracy_summary(estimate_back, truth_back)
-    assert ours["ate_rmse_m"] == pytest.approx(ape(aligned=False), abs=1e-6)
-    assert ours["ate_aligned_rmse_m"] == pytest.approx(ape(aligned=True), abs=1e-6)
+    assert ours.ate_rmse_m == pytest.approx(ape(aligned=False), abs=1e-6)
+    assert ours.ate_aligned_rmse_m == pytest.approx(ape(aligned=True), abs=1e-6)
     evo_translation, evo_pairs = rpe(evo_metrics.PoseRelation.translation_part)
     evo_rotation, _ = rpe(evo_metrics.PoseRelation.rotation_angle_deg)
-    assert ours["rpe"]["pairs"] == evo_pairs > 500
-    assert ours["rpe"]["translation_rmse_m"] == pytest.approx(evo_translation, abs=1e-6)
-    assert ours["rpe"]["rotation_rmse_deg"] == pytest.approx(evo_rotation, abs=1e-6)
+    assert ours.rpe.pairs == evo_pairs > 500
+    assert ours.rpe.translation_rmse_m == pytest.approx(evo_translation, abs=1e-6)
+    assert ours.rpe.rotation_rmse_deg == pytest.approx(evo_rotation, abs=1e-6)
     # the noise is big enough that the numbers mean something
-    assert ours["ate_rmse_m"] > 0.05 and ours["rpe"]["translation_rmse_m"] > 0.02
+    assert ours.ate_rmse_m > 0.05 and ours.rpe.translation_rmse_m > 0.02

@@ -6,7 +6,7 @@ Truth heights are the ground-truth elevation grid interpolated at each DEM cell'
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 from pydantic import Field
@@ -17,22 +17,21 @@ from dem_graph.dem.fusion import FusionConfig
 from dem_graph.dem.layers import Dem
 from dem_graph.dem.returns import GroundReturns, PoseTrack
 from dem_graph.dem.views import local_dem, local_frame
+from dem_graph.evaluation.results import MetricsModel, Number
 from dem_graph.geometry.grid import ElevationGrid
 from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.progress import progress
 
 
-@dataclass(frozen=True)
-class HeightErrors:
-    cells: int
-    rmse_m: float
-    mean_m: float
-    std_m: float
-    p95_abs_m: float
-    max_abs_m: float
+class HeightErrors(MetricsModel):
+    """Statistics of a DEM's height error over the cells where it and the truth are known (NaN over none)."""
 
-    def as_dict(self) -> dict:
-        return asdict(self)
+    cells: int
+    rmse_m: Number
+    mean_m: Number
+    std_m: Number
+    p95_abs_m: Number  # 95th percentile of the absolute error
+    max_abs_m: Number
 
 
 def _truth_at(truth: ElevationGrid, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -45,9 +44,12 @@ def height_errors(elevation: np.ndarray, truth: np.ndarray, mask: np.ndarray | N
     ok = np.isfinite(e) if mask is None else np.isfinite(e) & mask
     e = e[ok]
     if e.size == 0:
-        return HeightErrors(0, *([float("nan")] * 5))
+        nan = float("nan")
+        return HeightErrors(cells=0, rmse_m=nan, mean_m=nan, std_m=nan, p95_abs_m=nan, max_abs_m=nan)
     a = np.abs(e)
-    return HeightErrors(int(e.size), float(np.sqrt(np.mean(e * e))), float(e.mean()), float(e.std()), float(np.percentile(a, 95)), float(a.max()))
+    return HeightErrors(
+        cells=int(e.size), rmse_m=float(np.sqrt(np.mean(e * e))), mean_m=float(e.mean()), std_m=float(e.std()), p95_abs_m=float(np.percentile(a, 95)), max_abs_m=float(a.max())
+    )
 
 
 def truth_at_cells(dem: Dem, truth: ElevationGrid) -> np.ndarray:
@@ -70,12 +72,21 @@ def corridor_mask(dem: Dem, trajectory: Trajectory, half_width_m: float) -> np.n
     return (d <= half_width_m).reshape(x.shape)
 
 
-def corridor_coverage(dem: Dem, trajectory: Trajectory, half_width_m: float) -> dict:
+class CorridorCoverage(MetricsModel):
+    """How much of the driven corridor (the cells within ``half_width_m`` of the path) has a fused height."""
+
+    corridor_cells: int
+    covered_cells: int
+    coverage: Number  # covered_cells / corridor_cells
+    half_width_m: float
+
+
+def corridor_coverage(dem: Dem, trajectory: Trajectory, half_width_m: float) -> CorridorCoverage:
     """How much of the driven corridor has a fused height (the corridor: within ``half_width_m`` of the path)."""
     corridor = corridor_mask(dem, trajectory, half_width_m)
     n = int(corridor.sum())
     covered = int((corridor & dem.covered).sum())
-    return {"corridor_cells": n, "covered_cells": covered, "coverage": covered / n if n else float("nan"), "half_width_m": half_width_m}
+    return CorridorCoverage(corridor_cells=n, covered_cells=covered, coverage=covered / n if n else float("nan"), half_width_m=half_width_m)
 
 
 class LocalErrorConfig(StrictModel):
@@ -112,23 +123,42 @@ class LocalErrorSeries:
     relative_std_m: np.ndarray
     covered_fraction: np.ndarray
 
-    def summary(self) -> dict:
+    def summary(self, config: LocalErrorConfig) -> LocalErrorSummary:
+        """The series in a few numbers (means over the frames with data), with the window ``config`` it was measured over."""
+        window = {"x_range_m": list(config.x_range_m), "width_m": config.width_m, "frames": int(len(self.t_s))}
         ok = np.isfinite(self.mean_m)
         if not np.any(ok):
-            return {"frames": int(len(self.t_s)), "frames_with_data": 0}
-        out = {
-            "frames": int(len(self.t_s)),
-            "frames_with_data": int(ok.sum()),
-            "mean_of_mean_m": float(np.mean(self.mean_m[ok])),
-            "mean_abs_mean_m": float(np.mean(np.abs(self.mean_m[ok]))),
-            "mean_of_std_m": float(np.mean(self.std_m[ok])),
-            "covered_fraction_median": float(np.median(self.covered_fraction)),
-        }
+            return LocalErrorSummary(**window, frames_with_data=0)
+        out = LocalErrorSummary(
+            **window,
+            frames_with_data=int(ok.sum()),
+            mean_of_mean_m=float(np.mean(self.mean_m[ok])),
+            mean_abs_mean_m=float(np.mean(np.abs(self.mean_m[ok]))),
+            mean_of_std_m=float(np.mean(self.std_m[ok])),
+            covered_fraction_median=float(np.median(self.covered_fraction)),
+        )
         rel = np.isfinite(self.relative_mean_m)
         if np.any(rel):
-            out["relative_mean_abs_mean_m"] = float(np.mean(np.abs(self.relative_mean_m[rel])))
-            out["relative_mean_of_std_m"] = float(np.mean(self.relative_std_m[rel]))
+            out.relative_mean_abs_mean_m = float(np.mean(np.abs(self.relative_mean_m[rel])))
+            out.relative_mean_of_std_m = float(np.mean(self.relative_std_m[rel]))
         return out
+
+
+class LocalErrorSummary(MetricsModel):
+    """The Fig. 8 measure over a run (``metrics.json``'s ``dem.local_window``): the window, then the
+    means over the frames whose local DEM had data (none without such frames; the relative ones
+    only where the truth's pose is known)."""
+
+    x_range_m: list[float]  # the window ahead of the body origin, metres
+    width_m: float
+    frames: int  # local DEMs made
+    frames_with_data: int
+    mean_of_mean_m: Number | None = None  # the paper's Fig. 8: the mean error, averaged over the frames
+    mean_abs_mean_m: Number | None = None
+    mean_of_std_m: Number | None = None
+    covered_fraction_median: Number | None = None
+    relative_mean_abs_mean_m: Number | None = None  # against the truth in the true local frame
+    relative_mean_of_std_m: Number | None = None
 
 
 def _truth_in_local(truth: ElevationGrid, T_world_local: np.ndarray, x_local: np.ndarray, y_local: np.ndarray) -> np.ndarray:
@@ -167,4 +197,4 @@ def local_error_series(
     return LocalErrorSeries(times_s, a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4])
 
 
-__all__ = ["HeightErrors", "LocalErrorConfig", "LocalErrorSeries", "corridor_coverage", "corridor_mask", "height_errors", "local_error_series", "truth_at_cells"]
+__all__ = ["CorridorCoverage", "HeightErrors", "LocalErrorConfig", "LocalErrorSeries", "LocalErrorSummary", "corridor_coverage", "corridor_mask", "height_errors", "local_error_series", "truth_at_cells"]

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dem_graph.evaluation.results import MetricsModel, Number
+
 
 @dataclass(frozen=True)
 class TimingStats:
@@ -24,8 +26,16 @@ class TimingStats:
         return cls(int(a.size), float(np.median(a)), float(np.percentile(a, 95)), float(a.mean()))
 
 
-def frame_timing_summary(per_frame: dict[str, list[float]]) -> dict[str, dict[str, float]]:
-    """Per-phase timing of a run: ``{phase: {"median_ms", "p95_ms", "mean_ms"}}``.
+class PhaseTiming(MetricsModel):
+    """One phase's time per frame over a run, milliseconds."""
+
+    median_ms: Number
+    p95_ms: Number
+    mean_ms: Number
+
+
+def frame_timing_summary(per_frame: dict[str, list[float]]) -> dict[str, PhaseTiming]:
+    """Per-phase timing of a run: ``{phase: PhaseTiming}``.
 
     ``per_frame`` maps a phase ("total", "prediction", "tracking", "update", ...) to its duration in
     seconds at each frame. A phase with no sample gets NaN (null in ``metrics.json``).
@@ -33,7 +43,7 @@ def frame_timing_summary(per_frame: dict[str, list[float]]) -> dict[str, dict[st
     summary = {}
     for phase, samples in per_frame.items():
         stats = TimingStats.from_seconds(samples)
-        summary[phase] = {"median_ms": stats.median_ms, "p95_ms": stats.p95_ms, "mean_ms": stats.mean_ms}
+        summary[phase] = PhaseTiming(median_ms=stats.median_ms, p95_ms=stats.p95_ms, mean_ms=stats.mean_ms)
     return summary
 
 

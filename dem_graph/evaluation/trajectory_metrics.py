@@ -23,6 +23,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from dem_graph.errors import DemGraphError
+from dem_graph.evaluation.results import MetricsModel, Number
 from dem_graph.geometry.se3 import invert
 from dem_graph.geometry.trajectory import Trajectory
 
@@ -179,22 +180,37 @@ class RelativePoseErrors:
     distance_m: float  # distance along the truth over the estimate's span
     reason: str | None = None
 
-    def as_dict(self) -> dict:
-        """Summary numbers as plain Python values, for JSON (NaN when there is no pair)."""
+    def summary(self) -> RpeSummary:
+        """The summary numbers (NaN when there is no pair)."""
         n = len(self.pairs)
         t = self.translation_error_m
         r = self.rotation_error_deg
         nan = math.nan
-        return {
-            "delta_m": float(self.delta_m),
-            "pairs": int(n),
-            "translation_rmse_m": float(np.sqrt(np.mean(t**2))) if n else nan,
-            "translation_mean_m": float(np.mean(t)) if n else nan,
-            "translation_max_m": float(np.max(t)) if n else nan,
-            "translation_rmse_percent": float(100.0 * np.sqrt(np.mean(t**2)) / self.delta_m) if n else nan,
-            "rotation_rmse_deg": float(np.sqrt(np.mean(r**2))) if n else nan,
-            "reason": self.reason,
-        }
+        return RpeSummary(
+            delta_m=float(self.delta_m),
+            pairs=int(n),
+            translation_rmse_m=float(np.sqrt(np.mean(t**2))) if n else nan,
+            translation_mean_m=float(np.mean(t)) if n else nan,
+            translation_max_m=float(np.max(t)) if n else nan,
+            translation_rmse_percent=float(100.0 * np.sqrt(np.mean(t**2)) / self.delta_m) if n else nan,
+            rotation_rmse_deg=float(np.sqrt(np.mean(r**2))) if n else nan,
+            reason=self.reason,
+        )
+
+
+class RpeSummary(MetricsModel):
+    """The RPE over ``delta_m`` in numbers (``metrics.json``'s ``trajectory.rpe``)."""
+
+    _keep_none = frozenset({"reason"})
+
+    delta_m: float
+    pairs: int
+    translation_rmse_m: Number
+    translation_mean_m: Number
+    translation_max_m: Number
+    translation_rmse_percent: Number
+    rotation_rmse_deg: Number
+    reason: str | None = None  # why there is no pair
 
 
 def _pairs_at_distance(s_m: np.ndarray, delta_m: float, tolerance_m: float) -> np.ndarray:
@@ -262,14 +278,27 @@ def relative_pose_errors(estimate: Trajectory, truth: Trajectory, delta_m: float
     )
 
 
-def accuracy_summary(estimate: Trajectory, truth: Trajectory, rpe_delta_m: float = RPE_DELTA_M) -> dict:
-    """Every trajectory number of a run, as plain values for ``metrics.json``: the anchored metrics
-    of :func:`trajectory_metrics` (ATE, drift in % of distance, ...), ``ate_aligned_rmse_m``, and
-    the RPE over ``rpe_delta_m`` under ``"rpe"``."""
-    out = trajectory_metrics(estimate, truth).as_dict()
-    out["ate_aligned_rmse_m"] = ate_aligned_rmse_m(estimate, truth)
-    out["rpe"] = relative_pose_errors(estimate, truth, rpe_delta_m).as_dict()
-    return out
+class TrajectoryAccuracy(MetricsModel):
+    """Every trajectory number of a run (``metrics.json``'s ``trajectory``): the anchored metrics of
+    :class:`TrajectoryMetrics`, the ATE after the best rigid alignment, and the RPE."""
+
+    ate_rmse_m: Number
+    ate_max_m: Number
+    rotation_rmse_deg: Number
+    final_error_m: Number
+    distance_m: Number
+    drift_percent: Number
+    n_poses: int
+    ate_aligned_rmse_m: Number
+    rpe: RpeSummary
+
+
+def accuracy_summary(estimate: Trajectory, truth: Trajectory, rpe_delta_m: float = RPE_DELTA_M) -> TrajectoryAccuracy:
+    """Every trajectory number of a run: the anchored metrics of :func:`trajectory_metrics` (ATE,
+    drift in % of distance, ...), the aligned ATE and the RPE over ``rpe_delta_m``."""
+    anchored = trajectory_metrics(estimate, truth).as_dict()
+    aligned = ate_aligned_rmse_m(estimate, truth)
+    return TrajectoryAccuracy(**anchored, ate_aligned_rmse_m=aligned, rpe=relative_pose_errors(estimate, truth, rpe_delta_m).summary())
 
 
 def pose_nees(estimate_T, truth_T, covariances) -> np.ndarray:
@@ -307,6 +336,23 @@ def pose_nees(estimate_T, truth_T, covariances) -> np.ndarray:
     # xi^T P^-1 xi = |L^-1 xi|^2 with P = L L^T
     whitened = np.linalg.solve(L, xi[..., None])[..., 0] if n else np.empty((0, 6))
     return np.sum(whitened**2, axis=1)
+
+
+class NeesSummary(MetricsModel):
+    """The poses' NEES over a run (``metrics.json``'s ``pose_nees``), the first pose left out (it is
+    the anchor): its median (6 for a consistent estimator), the fraction inside the two-sided 95 %
+    chi-square interval and the fraction below its upper bound."""
+
+    median: Number
+    fraction_within_95: Number
+    fraction_below_upper_95: Number
+
+
+def nees_summary(nees: np.ndarray) -> NeesSummary:
+    """:class:`NeesSummary` of the poses' NEES (:func:`pose_nees`), the first left out."""
+    lo, hi = nees_bounds(6, 0.95)
+    later = nees[1:]
+    return NeesSummary(median=float(np.median(later)), fraction_within_95=float(np.mean((later >= lo) & (later <= hi))), fraction_below_upper_95=float(np.mean(later <= hi)))
 
 
 def nees_bounds(dof: int = 6, probability: float = 0.95) -> tuple[float, float]:

@@ -1,74 +1,104 @@
-"""A run's metrics: what ``metrics.json`` holds, and the lines ``dem-graph run`` prints."""
+"""A run's metrics: the typed :class:`RunMetrics` that ``metrics.json`` is written from, and the lines
+``dem-graph run`` prints."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 
 from dem_graph.datasets.base import Sequence
 from dem_graph.estimators.base import EstimatorResult
-from dem_graph.evaluation.timing import frame_timing_summary
-from dem_graph.evaluation.trajectory_metrics import accuracy_summary, nees_bounds, pose_nees
+from dem_graph.evaluation.results import MetricsModel
+from dem_graph.evaluation.timing import PhaseTiming, frame_timing_summary
+from dem_graph.evaluation.trajectory_metrics import NeesSummary, TrajectoryAccuracy, accuracy_summary, nees_summary, pose_nees
+from dem_graph.pipeline.run_dem import DemFailure, DemMetrics
+
+# other estimates of every frame's pose an estimator may give (EstimatorResult.extra_poses), each
+# written as <name>.tum and measured under its name
+EXTRA_TRAJECTORIES = ("trajectory_smoothed", "trajectory_online")
 
 
-def compute_metrics(sequence: Sequence, res: EstimatorResult, error: str | None = None, elapsed_s: float = 0.0) -> dict:
-    """A run's metrics (``metrics.json`` less its DEM and its dataset): frames, time and points per
-    frame, events, and against the truth the trajectory's accuracy and the poses' NEES."""
-    metrics: dict = {"estimator": res.name, "frames": len(res.frames), "elapsed_s": elapsed_s}
-    if error:
-        metrics["error"] = error
+class PointsPerFrame(MetricsModel):
+    live_median: float  # live points per frame, median
+    live_max: int
+    tracked_median: float  # points tracked per frame, median
+
+
+class RunMetrics(MetricsModel):
+    """Everything ``metrics.json`` holds. A field is None (and left out of the file) when it was not
+    measured: no frame, no ground truth, no DEM, or (``dem-graph evaluate``) not in the run folder."""
+
+    estimator: str | None = None  # the estimator's name (ekf-gm, ekf-ptpm, isam2, isam2-batch)
+    frames: int | None = None
+    elapsed_s: float | None = None  # the whole run, wall clock
+    error: str | None = None  # why the run stopped early (its results go up to there)
+    time_per_frame: dict[str, PhaseTiming] | None = None  # by phase: total, prediction, tracking, update, map, graph, ...
+    points_per_frame: PointsPerFrame | None = None
+    map_points: int | None = None  # points ever estimated
+    events: dict[str, int | float] | None = None  # the estimator's counters (tracking outcomes, points added and dropped, ...)
+    trajectory: TrajectoryAccuracy | None = None  # the per-frame estimate against the truth
+    trajectory_smoothed: TrajectoryAccuracy | None = None  # isam2: every frame as smoothed at the end of the run
+    trajectory_online: TrajectoryAccuracy | None = None  # isam2-batch: its online pass
+    pose_nees: NeesSummary | None = None
+    dem: DemMetrics | DemFailure | None = None
+    dataset: str | None = None  # the dataset's path
+    dataset_options: dict[str, Any] | None = None  # how it was opened (:meth:`Sequence.open_options`)
+
+
+def compute_metrics(sequence: Sequence, res: EstimatorResult, error: str | None = None, elapsed_s: float = 0.0) -> RunMetrics:
+    """A run's metrics, its DEM and its dataset aside: frames, time and points per frame, events, and
+    against the truth the trajectory's accuracy (each extra trajectory's too) and the poses' NEES."""
+    metrics = RunMetrics(estimator=res.name, frames=len(res.frames), elapsed_s=elapsed_s, error=error or None)
     if not res.frames:
         return metrics
     phases = sorted({k for f in res.frames for k in f.timing_s})
-    metrics["time_per_frame"] = frame_timing_summary({k: [f.timing_s.get(k, 0.0) for f in res.frames] for k in phases})
+    metrics.time_per_frame = frame_timing_summary({k: [f.timing_s.get(k, 0.0) for f in res.frames] for k in phases})
     live = np.array([f.n_live for f in res.frames])
     tracked = np.array([f.n_tracked for f in res.frames])
-    metrics["points_per_frame"] = {"live_median": float(np.median(live)), "live_max": int(live.max()), "tracked_median": float(np.median(tracked))}
-    metrics["map_points"] = len(res.points)
-    metrics["events"] = dict(sorted(res.counters.items()))
+    metrics.points_per_frame = PointsPerFrame(live_median=float(np.median(live)), live_max=int(live.max()), tracked_median=float(np.median(tracked)))
+    metrics.map_points = len(res.points)
+    metrics.events = dict(sorted(res.counters.items()))
     gt = sequence.ground_truth
     if gt is not None and len(res.frames) > 1:
         est = res.trajectory()
-        metrics["trajectory"] = accuracy_summary(est, gt.trajectory)
+        metrics.trajectory = accuracy_summary(est, gt.trajectory)
         for name, extra in res.extra_trajectories().items():
-            metrics[name] = accuracy_summary(extra, gt.trajectory)
-        nees = pose_nees(est.poses_se3, gt.trajectory.at(est.t_s), res.pose_covariances())
-        lo, hi = nees_bounds(6, 0.95)
-        later = nees[1:]
-        metrics["pose_nees"] = {"median": float(np.median(later)), "fraction_within_95": float(np.mean((later >= lo) & (later <= hi))), "fraction_below_upper_95": float(np.mean(later <= hi))}
+            setattr(metrics, name, accuracy_summary(extra, gt.trajectory))
+        metrics.pose_nees = nees_summary(pose_nees(est.poses_se3, gt.trajectory.at(est.t_s), res.pose_covariances()))
     return metrics
 
 
-def summary_lines(m: dict) -> list[str]:
+def summary_lines(m: RunMetrics) -> list[str]:
     """A run's metrics in a few lines, as ``dem-graph run`` prints them."""
-    lines = [f"{m.get('estimator')}: {m.get('frames', 0)} frames in {m.get('elapsed_s', 0.0):.1f} s"]
-    if "time_per_frame" in m:
-        t = m["time_per_frame"]["total"]
-        p = m["points_per_frame"]
-        lines.append(f"time per frame: median {t['median_ms']:.1f} ms, p95 {t['p95_ms']:.1f} ms; live points median {p['live_median']:.0f}, tracked {p['tracked_median']:.0f}")
-    if "trajectory" in m:
-        tr = m["trajectory"]
-        lines.append(f"ATE RMSE {tr['ate_rmse_m']:.3f} m ({tr['ate_aligned_rmse_m']:.3f} m aligned), final error {tr['final_error_m']:.3f} m over {tr['distance_m']:.1f} m: drift {tr['drift_percent']:.2f} %")
-        rpe = tr["rpe"]
-        if rpe["pairs"]:
-            lines.append(f"RPE over {rpe['delta_m']:g} m: {rpe['translation_rmse_m']:.3f} m, {rpe['rotation_rmse_deg']:.2f} deg (RMSE of {rpe['pairs']} pairs)")
+    lines = [f"{m.estimator}: {m.frames or 0} frames in {m.elapsed_s or 0.0:.1f} s"]
+    if m.time_per_frame is not None and m.points_per_frame is not None:
+        t, p = m.time_per_frame["total"], m.points_per_frame
+        lines.append(f"time per frame: median {t.median_ms:.1f} ms, p95 {t.p95_ms:.1f} ms; live points median {p.live_median:.0f}, tracked {p.tracked_median:.0f}")
+    if m.trajectory is not None:
+        tr = m.trajectory
+        lines.append(f"ATE RMSE {tr.ate_rmse_m:.3f} m ({tr.ate_aligned_rmse_m:.3f} m aligned), final error {tr.final_error_m:.3f} m over {tr.distance_m:.1f} m: drift {tr.drift_percent:.2f} %")
+        rpe = tr.rpe
+        if rpe.pairs:
+            lines.append(f"RPE over {rpe.delta_m:g} m: {rpe.translation_rmse_m:.3f} m, {rpe.rotation_rmse_deg:.2f} deg (RMSE of {rpe.pairs} pairs)")
         else:
-            lines.append(f"RPE over {rpe['delta_m']:g} m: none ({rpe['reason']})")
-    d = m.get("dem")
-    if d and "error" not in d:
-        line = f"DEM: {d['covered_cells']} cells of {d['resolution_m']:g} m from {d['measurements']} measurements, rebuilt in {d['rebuild_s']:.2f} s"
-        if "height_error_laser_cells" in d:
-            e, c = d["height_error_laser_cells"], d["corridor"]
-            line += f"; height RMSE {100 * e['rmse_m']:.1f} cm over the laser-swept cells, corridor {100 * c['coverage']:.0f} % covered"
+            lines.append(f"RPE over {rpe.delta_m:g} m: none ({rpe.reason})")
+    d = m.dem
+    if isinstance(d, DemMetrics):
+        line = f"DEM: {d.covered_cells} cells of {d.resolution_m:g} m from {d.measurements} measurements, rebuilt in {d.rebuild_s:.2f} s"
+        if d.height_error_laser_cells is not None and d.corridor is not None:
+            e, c = d.height_error_laser_cells, d.corridor
+            line += f"; height RMSE {100 * e.rmse_m:.1f} cm over the laser-swept cells, corridor {100 * c.coverage:.0f} % covered"
         lines.append(line)
-        if "local_window" in d and d["local_window"].get("frames_with_data"):
-            lw = d["local_window"]
-            line = f"local DEM, {lw['width_m']:g} m window ahead (Fig. 8): mean error {100 * lw['mean_of_mean_m']:.1f} cm, std {100 * lw['mean_of_std_m']:.1f} cm"
-            if "relative_mean_abs_mean_m" in lw:
-                line += f"; relative to the vehicle: |mean| {100 * lw['relative_mean_abs_mean_m']:.1f} cm, std {100 * lw['relative_mean_of_std_m']:.1f} cm"
+        lw = d.local_window
+        if lw is not None and lw.frames_with_data:
+            line = f"local DEM, {lw.width_m:g} m window ahead (Fig. 8): mean error {100 * lw.mean_of_mean_m:.1f} cm, std {100 * lw.mean_of_std_m:.1f} cm"
+            if lw.relative_mean_abs_mean_m is not None:
+                line += f"; relative to the vehicle: |mean| {100 * lw.relative_mean_abs_mean_m:.1f} cm, std {100 * lw.relative_mean_of_std_m:.1f} cm"
             lines.append(line)
-    elif d:
-        lines.append(f"DEM: not made ({d['error']})")
+    elif isinstance(d, DemFailure):
+        lines.append(f"DEM: not made ({d.error})")
     return lines
 
 
-__all__ = ["compute_metrics", "summary_lines"]
+__all__ = ["EXTRA_TRAJECTORIES", "PointsPerFrame", "RunMetrics", "compute_metrics", "summary_lines"]

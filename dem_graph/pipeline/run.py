@@ -28,8 +28,8 @@ from dem_graph.estimators.ekf import EkfConfig, EkfSlam
 from dem_graph.estimators.isam2 import Isam2Config, Isam2Slam
 from dem_graph.estimators.settings import SharedSettings
 from dem_graph.pipeline.config import ESTIMATORS, RunConfig, RunOverrides, run_config
-from dem_graph.pipeline.metrics import compute_metrics
-from dem_graph.pipeline.run_dem import RunDem, dem_from_result, make_run_dem
+from dem_graph.pipeline.metrics import RunMetrics, compute_metrics
+from dem_graph.pipeline.run_dem import DemFailure, RunDem, dem_from_result, make_run_dem
 from dem_graph.pipeline.run_folder import write_run
 from dem_graph.progress import progress
 
@@ -50,7 +50,7 @@ def make_estimator(sequence: Sequence, config: RunConfig) -> Estimator:
 class RunResult:
     estimator: EstimatorResult
     config: RunConfig
-    metrics: dict = field(default_factory=dict)
+    metrics: RunMetrics = field(default_factory=RunMetrics)
     error: str | None = None  # set when the loop stopped early; the result holds what was done
     elapsed_s: float = 0.0
     dem: RunDem | None = None  # the dense DEM from the run's poses (None if it could not be made)
@@ -127,16 +127,16 @@ def run_estimator(sequence: Sequence, config: RunConfig | None = None, with_dem:
 
 
 def run_dem(run: RunResult, sequence: Sequence) -> RunDem | None:
-    """The run's DEM and its metrics (into ``run.metrics["dem"]``); a failure is logged, the run kept."""
+    """The run's DEM and its metrics (into ``run.metrics.dem``); a failure is logged, the run kept."""
     try:
         returns, poses = dem_from_result(run.estimator, sequence, run.config.dem)
         half_width = run.config.frontend.focus.corridor_width_m / 2.0
         dem = make_run_dem(returns, poses, sequence.ground_truth, run.config.dem, corridor_half_width_m=half_width, local_error=run.config.local_error)
     except DemGraphError as exc:
         log.warning("no DEM for this run: %s", exc)
-        run.metrics["dem"] = {"error": str(exc)}
+        run.metrics.dem = DemFailure(error=str(exc))
         return None
-    run.metrics["dem"] = dem.metrics
+    run.metrics.dem = dem.metrics
     return dem
 
 
@@ -159,8 +159,8 @@ def run_dataset(
         sequence, where = open_dataset(dataset, fmt, dataset_options), dataset
     result = run_estimator(sequence, run_config(sequence, config_file, overrides))
     if where is not None:
-        result.metrics["dataset"] = str(Path(where).resolve())
-    result.metrics["dataset_options"] = sequence.open_options()
+        result.metrics.dataset = str(Path(where).resolve())
+    result.metrics.dataset_options = sequence.open_options()
     if out_dir is not None:
         result.paths = write_run(result, out_dir)
     return result

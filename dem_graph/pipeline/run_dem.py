@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -24,13 +24,17 @@ from dem_graph.dem.views import global_dem, local_dem, speed_at
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators.base import EstimatorResult
 from dem_graph.evaluation.dem_metrics import (
+    CorridorCoverage,
+    HeightErrors,
     LocalErrorConfig,
     LocalErrorSeries,
+    LocalErrorSummary,
     corridor_coverage,
     height_errors,
     local_error_series,
     truth_at_cells,
 )
+from dem_graph.evaluation.results import MetricsModel
 from dem_graph.frontend.focus import FocusArea, FocusConfig
 from dem_graph.pipeline.config import DemConfig
 
@@ -68,25 +72,57 @@ def dem_from_result(result: EstimatorResult, sequence: Sequence, config: DemConf
     return ground_returns(sequence, poses, points), poses
 
 
+class DemMetrics(MetricsModel):
+    """A run's DEM in numbers (``metrics.json``'s ``dem``); against the truth, where the dataset has it,
+    its height errors, the corridor's coverage and the Fig. 8 measure."""
+
+    resolution_m: float
+    grid_shape: list[int]  # rows, columns
+    measurements: int  # laser returns and map points given to the fusion
+    laser_returns: int
+    fused: int  # measurements fused into a cell (inside the grid, finite, through the gate)
+    covered_cells: int
+    rebuild_s: float  # the fusion's time
+    height_error: HeightErrors | None = None  # over every covered cell
+    height_error_laser_cells: HeightErrors | None = None  # over the cells a laser return reached
+    corridor: CorridorCoverage | None = None
+    local_window: LocalErrorSummary | None = None  # Fig. 8
+
+
+class DemFailure(MetricsModel):
+    """Why a run has no DEM."""
+
+    error: str
+
+
+class LocalDemMetrics(MetricsModel):
+    """A local map at a time (``dem-graph dem RUN --at T``)."""
+
+    t_s: float
+    covered_cells: int
+    frame: str = "local"
+
+
 @dataclass
 class RunDem:
     dem: Dem
     returns: GroundReturns
     poses: PoseTrack
-    metrics: dict = field(default_factory=dict)  # plain numbers, for metrics.json
+    metrics: DemMetrics | LocalDemMetrics
     local_series: LocalErrorSeries | None = None  # the Fig. 8 measure frame by frame, for figures
 
 
-def evaluate_dem(dem: Dem, truth: GroundTruth, corridor_half_width_m: float) -> dict:
-    """Height errors (all covered cells, and the cells a laser return reached) and corridor coverage."""
-    out: dict = {}
+def evaluate_dem(dem: Dem, truth: GroundTruth, corridor_half_width_m: float) -> dict[str, MetricsModel]:
+    """Height errors (all covered cells, and the cells a laser return reached) and corridor coverage,
+    by :class:`DemMetrics` field (none without the truth's elevation)."""
     if truth.elevation is None:
-        return out
+        return {}
     z_truth = truth_at_cells(dem, truth.elevation)
-    out["height_error"] = height_errors(dem.elevation, z_truth).as_dict()
-    out["height_error_laser_cells"] = height_errors(dem.elevation, z_truth, dem.layers["laser_count"] > 0).as_dict()
-    out["corridor"] = corridor_coverage(dem, truth.trajectory, corridor_half_width_m)
-    return out
+    return {
+        "height_error": height_errors(dem.elevation, z_truth),
+        "height_error_laser_cells": height_errors(dem.elevation, z_truth, dem.layers["laser_count"] > 0),
+        "corridor": corridor_coverage(dem, truth.trajectory, corridor_half_width_m),
+    }
 
 
 def make_run_dem(
@@ -107,28 +143,25 @@ def make_run_dem(
     start = time.perf_counter()
     dem = global_dem(returns, config.fusion, traversability_window=config.traversability_window)
     rebuild_s = time.perf_counter() - start
-    m: dict = {
-        "resolution_m": config.fusion.resolution_m,
-        "grid_shape": list(dem.geometry.shape),
-        "measurements": len(returns),
-        "laser_returns": int(np.sum(returns.source == ReturnSource.LASER_RETURN)),
-        "fused": dem.n_used,
-        "covered_cells": int(dem.covered.sum()),
-        "rebuild_s": rebuild_s,
-    }
+    m = DemMetrics(
+        resolution_m=config.fusion.resolution_m,
+        grid_shape=list(dem.geometry.shape),
+        measurements=len(returns),
+        laser_returns=int(np.sum(returns.source == ReturnSource.LASER_RETURN)),
+        fused=dem.n_used,
+        covered_cells=int(dem.covered.sum()),
+        rebuild_s=rebuild_s,
+    )
     series = None
     if ground_truth is not None:
-        m.update(evaluate_dem(dem, ground_truth, corridor_half_width_m))
+        for name, value in evaluate_dem(dem, ground_truth, corridor_half_width_m).items():
+            setattr(m, name, value)
         if local_errors and ground_truth.elevation is not None:
             series = local_error_series(
                 returns, poses, ground_truth.elevation, poses.t_s[:: window.every_n_frames], window.x_range_m, window.width_m / 2.0,
                 config.fusion, config.local_history_s, truth_trajectory=ground_truth.trajectory,
             )
-            m["local_window"] = {
-                "x_range_m": list(window.x_range_m),
-                "width_m": window.width_m,
-                **series.summary(),
-            }
+            m.local_window = series.summary(window)
     return RunDem(dem, returns, poses, m, series)
 
 
@@ -142,7 +175,7 @@ def make_local_dem(returns: GroundReturns, poses: PoseTrack, t_s: float, x_range
     config = config or DemConfig()
     _require_time(poses, t_s)
     dem = local_dem(returns, poses, t_s, x_range_m, half_width_m, config.fusion, history_s=config.local_history_s, traversability_window=config.traversability_window)
-    return RunDem(dem, returns.until(t_s), poses, {"t_s": t_s, "covered_cells": int(dem.covered.sum()), "frame": "local"})
+    return RunDem(dem, returns.until(t_s), poses, LocalDemMetrics(t_s=t_s, covered_cells=int(dem.covered.sum())))
 
 
 def focus_local_dem(returns: GroundReturns, poses: PoseTrack, t_s: float, rig, focus: FocusConfig | None = None, config: DemConfig | None = None) -> RunDem:
@@ -153,6 +186,9 @@ def focus_local_dem(returns: GroundReturns, poses: PoseTrack, t_s: float, rig, f
 
 
 __all__ = [
+    "DemFailure",
+    "DemMetrics",
+    "LocalDemMetrics",
     "RunDem",
     "dem_from_result",
     "evaluate_dem",

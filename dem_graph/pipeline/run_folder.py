@@ -25,12 +25,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
+from pydantic import ValidationError
 
+from dem_graph.config_types import format_validation_error
 from dem_graph.datasets.base import Sequence
+from dem_graph.datasets.open import reopen_dataset
 from dem_graph.dem.layers import Dem
 from dem_graph.dem.returns import GroundReturns, PoseTrack, map_point_returns
 from dem_graph.dem.views import to_local
-from dem_graph.errors import DatasetError, DemGraphError
+from dem_graph.errors import ConfigError, DatasetError, DemGraphError
 from dem_graph.evaluation.dem_metrics import LocalErrorSeries
 from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.io.dem_files import write_cloud_ply, write_dem_geotiff, write_dem_npz
@@ -269,6 +272,28 @@ def run_folder_dem(run_dir: str | Path, sequence: Sequence, at_s: float | None =
     return focus_local_dem(returns, poses, at_s, sequence.rig, config.frontend.focus, config.dem)
 
 
+def remake_dem(run_dir: str | Path, dataset: str | Path | None = None, at_s: float | None = None, resolution_m: float | None = None) -> RunDem:
+    """What ``dem-graph dem RUN`` makes: the run folder's DEM again (see :func:`run_folder_dem`), from
+    the dataset it names (or ``dataset``) opened as the run opened it, with its configuration (the
+    cell size ``resolution_m`` if given)."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise DatasetError(run_dir, "run folder not found")
+    config = run_folder_config(run_dir)
+    recorded = read_run_metrics(run_dir)
+    if dataset is None:
+        dataset = recorded.get("dataset")
+        if not dataset:
+            raise DatasetError(run_dir / METRICS_JSON, "names no dataset: give --dataset")
+    if resolution_m is not None:
+        try:
+            config.dem.fusion.resolution_m = resolution_m
+        except ValidationError as exc:
+            raise ConfigError(f"invalid DEM resolution: {format_validation_error(exc)}") from None
+    sequence = reopen_dataset(Path(dataset), recorded.get("dataset_options"))  # the run's KITTI ring, ...
+    return run_folder_dem(run_dir, sequence, at_s, config)
+
+
 def write_run(run: RunResult, out_dir: str | Path) -> dict[str, Path]:
     """Write the whole run folder (see the module); returns the written paths by name."""
     res = run.estimator
@@ -285,7 +310,7 @@ def write_run(run: RunResult, out_dir: str | Path) -> dict[str, Path]:
     }
     if not res.frames:
         raise DemGraphError("the run produced no pose: nothing to write")
-    paths = write_run_outputs(out_dir, res.trajectory(), pts["xyz"], attributes, run.metrics, run.config.model_dump(mode="json"), res.extra_trajectories())
+    paths = write_run_outputs(out_dir, res.trajectory(), pts["xyz"], attributes, run.metrics.to_json_dict(), run.config.model_dump(mode="json"), res.extra_trajectories())
     poses = run.dem.poses if run.dem is not None else pose_track_from_result(res)
     paths["poses"] = save_run_poses(Path(out_dir) / POSES_NPZ, poses)
     if run.dem is not None:
@@ -303,6 +328,7 @@ __all__ = [
     "load_run_points",
     "load_run_poses",
     "read_run_metrics",
+    "remake_dem",
     "run_folder_config",
     "run_folder_dem",
     "save_run_poses",

@@ -126,7 +126,7 @@ def bench_estimators(
                     TimingStats.from_seconds([f.timing_s.get("graph", 0.0) for f in fr]),
                     float(np.median([f.n_live for f in fr])),
                     float(np.median([f.n_tracked for f in fr])),
-                    float(run.metrics["trajectory"]["drift_percent"]),
+                    float(run.metrics.trajectory.drift_percent),
                     ratio,
                     float(run.estimator.counters.get("graph_lag_keyframes_median", np.nan)),
                 )

@@ -30,6 +30,7 @@ from dem_graph.evaluation.dem_metrics import LocalErrorSeries
 from dem_graph.evaluation.timing import format_table, machine_description
 from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.pipeline.config import ESTIMATORS, RunConfig, run_config
+from dem_graph.pipeline.metrics import RunMetrics
 from dem_graph.pipeline.run import run_estimator
 from dem_graph.pipeline.run_folder import write_json, write_run
 from dem_graph.progress import progress
@@ -52,7 +53,7 @@ class EstimatorRun:
     run_dir: Path
     status: str  # "ok"; "stopped": the loop failed part way, the results up to there are kept; "failed"
     error: str | None = None
-    metrics: dict = field(default_factory=dict)  # as in its metrics.json ({} when it failed)
+    metrics: RunMetrics | None = None  # as in its metrics.json (None when it failed)
     trajectory: Trajectory | None = None  # its trajectory.tum
     local_series: LocalErrorSeries | None = None  # the Fig. 8 measure frame by frame
 
@@ -126,8 +127,8 @@ def _run_one(sequence: Sequence, config: RunConfig, name: str, run_dir: Path, da
     cfg.estimator = name
     try:
         result = run_estimator(sequence, cfg)
-        result.metrics["dataset"] = dataset
-        result.metrics["dataset_options"] = sequence.open_options()
+        result.metrics.dataset = dataset
+        result.metrics.dataset_options = sequence.open_options()
         write_run(result, run_dir)
     except DemGraphError as exc:
         log.error("%s failed: %s", name, exc)

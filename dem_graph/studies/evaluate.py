@@ -20,12 +20,16 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from pydantic import ValidationError
+
+from dem_graph.config_types import format_validation_error
 from dem_graph.datasets.base import GroundTruth, Sequence
 from dem_graph.datasets.open import open_sequence
 from dem_graph.errors import DatasetError, DemGraphError
-from dem_graph.evaluation.trajectory_metrics import accuracy_summary
+from dem_graph.evaluation.trajectory_metrics import TrajectoryAccuracy, accuracy_summary
 from dem_graph.io.tum import read_tum
-from dem_graph.pipeline.run_dem import RunDem
+from dem_graph.pipeline.metrics import EXTRA_TRAJECTORIES, RunMetrics
+from dem_graph.pipeline.run_dem import DemFailure, DemMetrics, RunDem
 from dem_graph.pipeline.run_folder import (
     METRICS_JSON,
     POSES_NPZ,
@@ -59,7 +63,7 @@ class RunEvaluation:
 
     run_dir: Path
     dataset: str
-    metrics: dict = field(default_factory=dict)
+    metrics: RunMetrics = field(default_factory=RunMetrics)
     dem: RunDem | None = None  # the DEM made again, for figures (None without poses.npz)
 
     @property
@@ -70,31 +74,31 @@ class RunEvaluation:
         """A short table: one line per number (the headline columns, then the DEM's details)."""
         values = self.headline
         rows = [[c.label, format_value(c, values[c.key])] for c in COLUMNS]
-        rpe = self.metrics.get("trajectory", {}).get("rpe", {})
-        if rpe.get("reason"):
-            rows.append(["RPE 10 m", rpe["reason"]])
-        dem = self.metrics.get("dem", {})
-        for key, label in (("height_error", "all covered cells"), ("height_error_laser_cells", "laser-swept cells")):
-            e = dem.get(key)
-            if e and e.get("cells"):
-                rows.append([f"DEM error, {label} (cm)", f"RMSE {100 * e['rmse_m']:.2f}, mean {100 * e['mean_m']:.2f}, std {100 * e['std_m']:.2f}, p95 |e| {100 * e['p95_abs_m']:.2f} ({e['cells']} cells)"])
-        c = dem.get("corridor")
-        if c and c.get("corridor_cells"):
-            rows.append(["corridor coverage (%)", f"{100 * c['coverage']:.1f} of {c['corridor_cells']} cells within {c['half_width_m']:g} m of the path"])
-        if "error" in dem:
-            rows.append(["DEM", f"not made ({dem['error']})"])
-        title = f"{self.run_dir} ({self.metrics.get('estimator', 'unknown estimator')}, {self.metrics.get('frames', '?')} frames) against {self.dataset}"
+        m = self.metrics
+        if m.trajectory is not None and m.trajectory.rpe.reason:
+            rows.append(["RPE 10 m", m.trajectory.rpe.reason])
+        dem = m.dem
+        if isinstance(dem, DemMetrics):
+            for e, label in ((dem.height_error, "all covered cells"), (dem.height_error_laser_cells, "laser-swept cells")):
+                if e is not None and e.cells:
+                    rows.append([f"DEM error, {label} (cm)", f"RMSE {100 * e.rmse_m:.2f}, mean {100 * e.mean_m:.2f}, std {100 * e.std_m:.2f}, p95 |e| {100 * e.p95_abs_m:.2f} ({e.cells} cells)"])
+            c = dem.corridor
+            if c is not None and c.corridor_cells:
+                rows.append(["corridor coverage (%)", f"{100 * c.coverage:.1f} of {c.corridor_cells} cells within {c.half_width_m:g} m of the path"])
+        elif isinstance(dem, DemFailure):
+            rows.append(["DEM", f"not made ({dem.error})"])
+        title = f"{self.run_dir} ({m.estimator or 'unknown estimator'}, {m.frames if m.frames is not None else '?'} frames) against {self.dataset}"
         width = max(len(label) for label, _ in rows)
         return "\n".join([title, *(f"  {label.ljust(width)}  {value}" for label, value in rows)])
 
     def as_dict(self) -> dict:
-        return {"run_dir": str(self.run_dir), "dataset": self.dataset, "headline": self.headline, "metrics": self.metrics}
+        return {"run_dir": str(self.run_dir), "dataset": self.dataset, "headline": self.headline, "metrics": self.metrics.to_json_dict()}
 
     def write_json(self, path: str | Path) -> Path:
         return write_json(path, self.as_dict(), "the evaluation")
 
 
-def _trajectory_accuracy(path: Path, truth: GroundTruth) -> dict:
+def _trajectory_accuracy(path: Path, truth: GroundTruth) -> TrajectoryAccuracy:
     estimate = read_tum(path)
     try:
         return accuracy_summary(estimate, truth.trajectory)
@@ -109,7 +113,7 @@ def evaluate_run(run_dir: str | Path, sequence: Sequence | str | Path, with_dem:
 
     Raises :class:`DatasetError` naming the file for a missing run folder, a missing or malformed
     ``trajectory.tum``, a dataset without ground truth, or a run whose times lie outside the truth's.
-    A run folder without ``poses.npz`` gets no DEM metrics (``metrics["dem"]["error"]`` says why).
+    A run folder without ``poses.npz`` gets no DEM metrics (``metrics.dem.error`` says why).
     """
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -117,18 +121,24 @@ def evaluate_run(run_dir: str | Path, sequence: Sequence | str | Path, with_dem:
     own = read_run_metrics(run_dir)
     sequence = open_sequence(sequence, own.get("dataset_options"))  # a KITTI run's ring, ...
     truth = require_ground_truth(sequence)
-    metrics = {k: own[k] for k in _CARRIED if k in own}
-    metrics["trajectory"] = _trajectory_accuracy(run_dir / TRAJECTORY_TUM, truth)
+    try:
+        metrics = RunMetrics.model_validate({k: own[k] for k in _CARRIED if k in own})
+    except ValidationError as exc:
+        raise DatasetError(run_dir / METRICS_JSON, f"not a run's metrics: {format_validation_error(exc)}") from None
+    metrics.trajectory = _trajectory_accuracy(run_dir / TRAJECTORY_TUM, truth)
     for extra in sorted(run_dir.glob("trajectory_*.tum")):
-        metrics[extra.stem] = _trajectory_accuracy(extra, truth)
+        if extra.stem in EXTRA_TRAJECTORIES:
+            setattr(metrics, extra.stem, _trajectory_accuracy(extra, truth))
+        else:
+            log.warning("%s: not a trajectory a run writes (%s): not evaluated", extra, ", ".join(f"{k}.tum" for k in EXTRA_TRAJECTORIES))
     dem = None
     if with_dem:
         if (run_dir / POSES_NPZ).is_file():
             config = run_folder_config(run_dir)
             dem = run_folder_dem(run_dir, sequence, None, config, local_errors=True)
-            metrics["dem"] = dem.metrics
+            metrics.dem = dem.metrics
         else:
-            metrics["dem"] = {"error": f"no {POSES_NPZ} in the run folder to make the DEM from"}
+            metrics.dem = DemFailure(error=f"no {POSES_NPZ} in the run folder to make the DEM from")
     dataset = str(getattr(sequence, "path", sequence.name))
     return RunEvaluation(run_dir, dataset, metrics, dem)
 

@@ -1,10 +1,11 @@
-"""The headline numbers of a run, taken from its metrics (``metrics.json``): which estimator, how
-accurate, how fast, as one row of a table.
+"""The headline numbers of a run, taken from its metrics (:class:`~dem_graph.pipeline.metrics.RunMetrics`):
+which estimator, how accurate, how fast, as one row of a table.
 
 Used by ``dem-graph evaluate`` (one run) and ``dem-graph compare`` (one row per estimator). Each
-:class:`Column` says where its number sits in the metrics and in which unit it is shown; a number
-the metrics do not hold (no ground truth, a run shorter than the RPE's distance, no DEM) is NaN,
-shown as ``-``.
+:class:`Column` names the fields its number sits under and the unit it is shown in; a number the
+run did not measure (no ground truth, a run shorter than the RPE's distance, no DEM) is NaN, shown
+as ``-``. A path that names no field is an error (and a test checks every column against the
+metrics' types), so a renamed field cannot turn a column into ``-`` unnoticed.
 """
 
 from __future__ import annotations
@@ -12,12 +13,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from pydantic import BaseModel
+
+from dem_graph.pipeline.metrics import RunMetrics
+from dem_graph.pipeline.run_dem import DemFailure
+
 
 @dataclass(frozen=True)
 class Column:
     key: str  # the number's name in summary.json (SI units, as the suffix says)
     label: str  # the table's header, with the unit shown
-    path: tuple[str, ...]  # where the number sits in a run's metrics
+    path: tuple[str, ...]  # the fields of RunMetrics the number sits under (a dict's key for a dict)
     scale: float = 1.0  # shown value = value * scale
     digits: int = 3  # decimals shown
 
@@ -36,20 +42,29 @@ COLUMNS: tuple[Column, ...] = (
     Column("points_per_frame", "points/frame", ("points_per_frame", "live_median"), digits=0),
 )
 
+# the forms a section takes when it was not measured: it holds no number
+_NOT_MEASURED = (DemFailure,)
 
-def metric_at(metrics: dict, path: tuple[str, ...]) -> float:
-    """The number at ``path`` in ``metrics``, NaN when it is absent or null."""
+
+def metric_at(metrics: RunMetrics, path: tuple[str, ...]) -> float:
+    """The number at ``path`` in ``metrics``; NaN when a section on the way was not measured.
+    :class:`AttributeError` when ``path`` names no field."""
     value = metrics
     for key in path:
-        if not isinstance(value, dict) or key not in value:
+        if value is None or isinstance(value, _NOT_MEASURED):
             return math.nan
-        value = value[key]
+        if isinstance(value, dict):
+            value = value.get(key)
+        elif isinstance(value, BaseModel) and key in type(value).model_fields:
+            value = getattr(value, key)
+        else:
+            raise AttributeError(f"{type(value).__name__} has no field {key!r} (column path {'.'.join(path)})")
     return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
 
 
-def headline(metrics: dict) -> dict[str, float]:
-    """Every column's number from a run's metrics, by key, in SI units (NaN when absent)."""
-    return {c.key: metric_at(metrics, c.path) for c in COLUMNS}
+def headline(metrics: RunMetrics | None) -> dict[str, float]:
+    """Every column's number from a run's metrics, by key, in SI units (NaN when not measured; all NaN without metrics)."""
+    return {c.key: math.nan if metrics is None else metric_at(metrics, c.path) for c in COLUMNS}
 
 
 def format_value(column: Column, value: float) -> str:
