@@ -55,9 +55,8 @@ class FrontendConfig(StrictModel):
     sigma_px: float = Field(
         0.3,
         gt=0,
-        description="standard deviation of a tracked position as the estimators weight it (each frame as if independent), pixels. "
-        "0.3: measured on the paper scenario by `dem-graph track-noise` (0.2 px RMS; about each track's offset 0.13 px with a lag-1 "
-        "correlation of 0.53 in u and 0.79 in v, which frames treated as independent carry at 0.24 and 0.38 px; 0.32 px over both)",
+        description="standard deviation of a tracked position as the estimators weight it (each frame as if independent), pixels; "
+        "`dem-graph track-noise` measures the value a camera and tracker call for (docs/isam2_design.md)",
     )
 
 
