@@ -10,7 +10,8 @@
 """
 
 from dem_graph.pipeline.config import ESTIMATORS, DemConfig, RunConfig, RunOverrides, run_config
-from dem_graph.pipeline.run import RunResult, run_dataset, run_estimator
+from dem_graph.pipeline.result import RunResult
+from dem_graph.pipeline.run import run_dataset, run_estimator
 from dem_graph.pipeline.run_folder import write_run
 
 __all__ = ["DemConfig", "ESTIMATORS", "RunConfig", "RunOverrides", "RunResult", "run_config", "run_dataset", "run_estimator", "write_run"]

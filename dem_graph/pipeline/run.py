@@ -14,7 +14,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from threadpoolctl import threadpool_limits
@@ -23,12 +22,13 @@ from dem_graph.datasets.base import Sequence
 from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
 from dem_graph.datasets.open import DatasetOptions, open_dataset
 from dem_graph.errors import DemGraphError
-from dem_graph.estimators.base import Estimator, EstimatorResult
+from dem_graph.estimators.base import Estimator
 from dem_graph.estimators.ekf import EkfConfig, EkfSlam
 from dem_graph.estimators.isam2 import Isam2Config, Isam2Slam
 from dem_graph.estimators.settings import SharedSettings
 from dem_graph.pipeline.config import ESTIMATORS, RunConfig, RunOverrides, run_config
-from dem_graph.pipeline.metrics import RunMetrics, compute_metrics
+from dem_graph.pipeline.metrics import compute_metrics
+from dem_graph.pipeline.result import RunResult
 from dem_graph.pipeline.run_dem import DemFailure, RunDem, dem_from_result, make_run_dem
 from dem_graph.pipeline.run_folder import write_run
 from dem_graph.progress import progress
@@ -44,17 +44,6 @@ def make_estimator(sequence: Sequence, config: RunConfig) -> Estimator:
     if config.estimator in ("isam2", "isam2-batch"):
         return Isam2Slam(*args, Isam2Config(**shared, **dict(config.isam2), batch=config.estimator == "isam2-batch"))
     raise DemGraphError(f"unknown estimator '{config.estimator}'; choose one of {', '.join(ESTIMATORS)}")
-
-
-@dataclass
-class RunResult:
-    estimator: EstimatorResult
-    config: RunConfig
-    metrics: RunMetrics = field(default_factory=RunMetrics)
-    error: str | None = None  # set when the loop stopped early; the result holds what was done
-    elapsed_s: float = 0.0
-    dem: RunDem | None = None  # the dense DEM from the run's poses (None if it could not be made)
-    paths: dict[str, Path] = field(default_factory=dict)  # the run folder's files, once written
 
 
 def feed(estimator: Estimator, sequence: Sequence, max_frames: int | None = None, finish: bool = True, realtime: bool = False) -> Iterator[int]:

@@ -21,7 +21,6 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
@@ -40,11 +39,9 @@ from dem_graph.io.dem_files import write_cloud_ply, write_dem_geotiff, write_dem
 from dem_graph.io.ply import read_points_ply, write_points_ply
 from dem_graph.io.tum import write_tum
 from dem_graph.pipeline.config import RunConfig, run_config
+from dem_graph.pipeline.result import RunResult
 from dem_graph.pipeline.run_dem import RunDem, focus_local_dem, ground_returns, make_run_dem, pose_track_from_result
 from dem_graph.viz.dem_figure import write_dem_png
-
-if TYPE_CHECKING:
-    from dem_graph.pipeline.run import RunResult
 
 TRAJECTORY_TUM = "trajectory.tum"
 METRICS_JSON = "metrics.json"
