@@ -39,9 +39,10 @@ import numpy as np
 from pydantic import Field
 
 from dem_graph.config_types import StrictModel
-from dem_graph.datasets.events import CameraFrame, LaserScan
+from dem_graph.datasets.events import CameraFrame
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators.base import EstimatorResult, FrameDrivenEstimator, FrameRecord
+from dem_graph.estimators.false_matches import FalseMatches
 from dem_graph.estimators.graph_worker import (
     GraphResult,
     GraphSetup,
@@ -53,12 +54,13 @@ from dem_graph.estimators.graph_worker import (
 )
 from dem_graph.estimators.keyframe_graph import KeyframeGraph
 from dem_graph.estimators.measurement_log import MeasurementLog
-from dem_graph.estimators.odometry import OdometryIntegrator
+from dem_graph.estimators.motion import constant_velocity_increment
+from dem_graph.estimators.point_archive import PointArchive
 from dem_graph.estimators.pose_update import project_with_jacobians, update_pose
-from dem_graph.estimators.settings import FalseMatches, SharedSettings
+from dem_graph.estimators.settings import SharedSettings
 from dem_graph.frontend.frontend import FrontEnd, NewPoint
 from dem_graph.frontend.pose_history import PoseHistory
-from dem_graph.geometry.lie import adjoint, local, retract, skew
+from dem_graph.geometry.lie import adjoint, local, skew
 from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.se3 import invert, nearest_pose, transform_points
 
@@ -181,11 +183,9 @@ class Isam2Slam(FrameDrivenEstimator):
         self.name = "isam2-batch" if c.batch else "isam2"
         self.rig = rig
         self.frontend = FrontEnd(c.frontend, rig)
-        self.use_odometry = c.motion.uses_odometry(has_odometry)
-        self.wait_for_odometry = c.motion.wait_for_odometry
+        super().__init__(c.motion, has_odometry, t_start_s)
         self._sigma_px = c.frontend.sigma_px
         self._gate = self.frontend.tracker.gate_chi2
-        self.t_s = float(t_start_s)
         self.T = np.array(T_world_body_initial, dtype=float)
         P0 = np.eye(6) * c.motion.initial_sigma_pose**2
         self._T0, self._P0 = self.T.copy(), P0
@@ -217,15 +217,12 @@ class Isam2Slam(FrameDrivenEstimator):
         self.live = LivePoints()
         self.history = PoseHistory(window=c.keyframe_spacing + 5)
         self.history.append(self.t_s, self.T)
-        self._odometry = OdometryIntegrator(self.t_s)
         self._v_body = np.zeros(6)  # constant-velocity model: [angular, linear] per second
         self._v_body[3] = c.motion.initial_speed_mps
         self._speed_mps: float | None = None
-        self._scans: list[LaserScan] = []
-        self._pending_frame: CameraFrame | None = None
         self._frames: list[FrameRecord] = []
         self._frame_anchor: list[tuple[int, np.ndarray]] = []  # per frame: (keyframe, T_keyframe_frame)
-        self._archived: list[tuple[int, int, np.ndarray, int, float]] = []  # id, kind, covariance, n_tracked, created
+        self._archived = PointArchive(self.frontend)  # the graph's latest estimate of each landmark is asked for in result()
         self._false_matches = FalseMatches(c.false_matches, self.frontend.counters)
         self.log = MeasurementLog() if c.batch else None
         self._next_landmark = 0  # graph variable L(j): one per patch segment of a point
@@ -314,15 +311,9 @@ class Isam2Slam(FrameDrivenEstimator):
 
     # --- prediction --------------------------------------------------------------------------
     def _predict(self, t_s: float) -> np.ndarray:
-        dt = t_s - self.t_s
-        if self.use_odometry:
-            U, Q = self._odometry.increment(t_s)
-        else:
-            # constant velocity from the last two frames' poses; white acceleration over dt
-            m = self.config.motion
-            U = retract(np.eye(4), self._v_body * dt)
-            q = np.array([m.sigma_angular_acc_radps2] * 3 + [m.sigma_linear_acc_mps2] * 3) ** 2
-            Q = np.diag(q * max(dt, 1e-3) ** 3) + np.eye(6) * 1e-10
+        dt, increment = self._motion.advance(t_s)
+        # without odometry: constant velocity from the last two frames' poses
+        U, Q = increment if increment is not None else constant_velocity_increment(self._v_body, dt, self._motion.sigma_acc)
         A = adjoint(invert(U))
         self.P_loc = A @ self.P_loc @ A.T + Q
         self.U_kf = self.U_kf @ U
@@ -332,7 +323,6 @@ class Isam2Slam(FrameDrivenEstimator):
             self._Q_since[k] = A @ Q_k @ A.T + Q
         self._U_frame, self._Q_frame = U, Q
         self._dt = dt
-        self.t_s = t_s
         return self.T @ U
 
     # --- tracking ----------------------------------------------------------------------------
@@ -351,20 +341,8 @@ class Isam2Slam(FrameDrivenEstimator):
         ids = live.ids[sel]
         templates = fe.templates(ids, None if warps is None else warps[sel])
         batch = fe.track_many(image, ids, templates, uv[sel], S_px2=S[sel], t_s=t_s, T_world_cam=T_wc)
-        if not self._false_matches.enabled:
-            return sel[batch.ok], batch.uv_px[batch.ok]
-        idx, found_uv = [], []
-        for i, ok, uv_found in zip(sel, batch.ok.tolist(), batch.uv_px):
-            found, injected = self._false_matches.apply(uv_found if ok else None, uv[i])
-            if found is None:
-                continue
-            if injected:
-                y = found - uv[i]
-                if not self._false_matches.record(y @ np.linalg.solve(S[i], y) <= self._gate):
-                    continue
-            idx.append(i)
-            found_uv.append(found)
-        return np.array(idx, dtype=int), np.array(found_uv, dtype=float).reshape(-1, 2)
+        # an injected match must pass the point's chi-square gate
+        return self._false_matches.screen_batch(sel, batch, uv, lambda i, y: y @ np.linalg.solve(S[i], y) <= self._gate)
 
     def search_regions(self, T_world_body: np.ndarray, Sigma: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Predicted pixels (n,2) of the live points from ``T_world_body``, their 2x2 innovation
@@ -448,8 +426,7 @@ class Isam2Slam(FrameDrivenEstimator):
         return live.landmark[idx].copy(), uv.copy(), sigma
 
     def _new_points(self, image, t_s: float, live_uv: np.ndarray) -> list[NewPoint]:
-        scans, self._scans = [s for s in self._scans if s.t_s <= t_s], [s for s in self._scans if s.t_s > t_s]
-        return self.frontend.new_points(image, t_s, self.T, scans, self.history, self.live.X, live_uv, self._speed_mps)
+        return self.frontend.new_points(image, t_s, self.T, self._scans.take_until(t_s), self.history, self.live.X, live_uv, self._speed_mps)
 
     def _send_keyframe(self, t_s: float, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint]) -> None:
         """The keyframe's message to the graph: its pose, the motion since the last one, its
@@ -578,12 +555,10 @@ class Isam2Slam(FrameDrivenEstimator):
         return np.linalg.inv(live.info[i]) + J @ self._anchor_P @ J.T
 
     def _archive(self, i: int, reason: str) -> None:
-        pid = int(self.live.ids[i])
-        track = self.frontend.drop(pid, reason)
-        self._archived.append((pid, track.kind, self._point_covariance_world(i), track.n_tracked, track.created_t_s))
+        self._archived.archive(int(self.live.ids[i]), reason, self._point_covariance_world(i))
 
     def _drop_points(self) -> np.ndarray:
-        keep, uv = self.frontend.drop_points(self.live.ids, self.live.X, self.T, self._archive)
+        keep, uv = self._archived.drop_points(self.live.ids, self.live.X, self.T, lambda i: (self._point_covariance_world(i), None))
         self.live.keep(keep)
         return uv
 
@@ -594,14 +569,10 @@ class Isam2Slam(FrameDrivenEstimator):
         return np.array([poses[k] @ T_rel for k, T_rel in self._frame_anchor]).reshape(-1, 4, 4)
 
     def result(self) -> EstimatorResult:
-        res = EstimatorResult(self.name, list(self._frames))
-        pts = self.points
-        for pid, kind, cov, n_tracked, created in self._archived:
-            res.points.add(pid, kind, pts[self._landmark_of[pid]], cov, n_tracked, created)
-        for i, pid in enumerate(self.live.ids):
-            track = self.frontend.tracks[int(pid)]
-            res.points.add(int(pid), track.kind, self.live.X[i], self._point_covariance_world(i), track.n_tracked, track.created_t_s)
-        res.counters = self.frontend.counters.copy()
+        pts, live = self.points, self.live
+        res = self._archived.result(
+            self.name, self._frames, live.ids, lambda i: live.X[i], self._point_covariance_world, archived_xyz=lambda pid: pts[self._landmark_of[pid]]
+        )
         res.counters["keyframes"] = len(self.keyframe_t_s)
         if self._graph_lag:
             res.counters["graph_lag_keyframes_median"] = int(np.median(self._graph_lag))
