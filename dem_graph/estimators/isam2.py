@@ -20,8 +20,7 @@ what was known at that frame.
 
 With keyframes every n > 1 frames, the observations in between are used by the per-frame pose, and
 reach the graph only through the weight of the next keyframe observation of the point
-(``sigma_px / sqrt(n)``). That is cheaper, but it was less accurate and diverged in the turns of
-the ``paper`` log (see the design notes).
+(``sigma_px / sqrt(n)``). That is cheaper and less accurate (the design notes compare them).
 
 ``batch: true`` (``--estimator isam2-batch``) also records every observation of every frame, and at
 the end smooths the whole log at once (:mod:`dem_graph.estimators.batch`). Its online pass only

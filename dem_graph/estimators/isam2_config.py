@@ -14,7 +14,7 @@ from dem_graph.estimators.settings import SharedSettings
 class Isam2Options(StrictModel):
     """What only the graph estimator has."""
 
-    keyframe_every: int = Field(1, ge=1, description="a keyframe every this many frames (1: every frame a pose of the graph; more is faster but was less accurate and, on paper, unstable in turns)")
+    keyframe_every: int = Field(1, ge=1, description="a keyframe every this many frames (1: every frame a pose of the graph; more is faster and less accurate, docs/isam2_design.md)")
     keyframe_min_live_fraction: float = Field(0.8, ge=0, le=1, description="also a keyframe when the live points fall below this fraction of the cap (new points enter at keyframes)")
     lag_s: float = Field(1.5, gt=0, description="fixed lag of the smoother, seconds: older variables are marginalised")
     marginalize_every_s: float = Field(
@@ -24,8 +24,8 @@ class Isam2Options(StrictModel):
     relinearize_skip: int = Field(1, ge=1, description="iSAM2 checks for relinearisation every this many updates")
     optimizer: Literal["dogleg", "gauss_newton"] = Field(
         "dogleg",
-        description="iSAM2's step: dogleg (a trust region) or plain Gauss-Newton. The window's absolute height and tilt are known only to a few tenths of a metre "
-        "and degree (nothing observes them but the odometry), and Gauss-Newton steps oscillated along them and jumped in the turns of paper",
+        description="iSAM2's step: dogleg (a trust region) or plain Gauss-Newton. Nothing but the odometry observes the window's absolute height and tilt, "
+        "and the trust region bounds the steps along them (docs/isam2_design.md)",
     )
     keyframe_weighting: bool = Field(
         True, description="a keyframe observation carries the information of the frames that tracked the point since its last keyframe observation (sigma_px / sqrt(n))"
@@ -39,7 +39,7 @@ class Isam2Options(StrictModel):
     robust: bool = Field(True, description="Huber kernel on projection factors and per-frame pixels")
     outlier_chi2: float = Field(9.21, gt=0, description="an observation whose normalised residual after the frame's pose update exceeds this (chi-square, 2 dof; 9.21 = 99 %) stays out of the graph")
     pose_covariance_every_s: float = Field(
-        1.0, ge=0, description="take a keyframe pose's marginal covariance from the smoother (15-35 ms) at most this often, seconds; in between it is carried by odometry; 0: never (the covariance relative to the map)"
+        1.0, ge=0, description="take a keyframe pose's marginal covariance from the smoother (a costly call) at most this often, seconds; in between it is carried by odometry; 0: never (the covariance relative to the map)"
     )
     graph_process: bool = Field(
         False,
@@ -50,13 +50,13 @@ class Isam2Options(StrictModel):
         10,
         ge=1,
         description="graph_process: keyframes the front end may run ahead of the graph's newest result before a frame waits for it; "
-        "more keep frames short while an update runs long, at the price of later corrections (a log replayed faster than the graph follows drifts more)",
+        "more keep frames short while an update runs long, at the price of later corrections",
     )
     batch_keyframe_every: int = Field(
         5,
         ge=1,
         description="isam2-batch: keyframe_every of its online pass, which only associates the data (the batch has a pose for every frame); "
-        "at 1 the in-process pass takes longer than the 100 m paper log was driven (docs/isam2_design.md)",
+        "fewer keyframes make that pass cheaper (docs/isam2_design.md)",
     )
     batch_max_iterations: int = Field(10, ge=1, description="isam2-batch: Levenberg-Marquardt iterations at most")
     batch_relative_error_tol: float = Field(1e-3, gt=0, description="isam2-batch: stop when the error falls by less than this fraction")

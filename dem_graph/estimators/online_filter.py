@@ -147,9 +147,8 @@ class OnlineFilter:
         Each also updates its point at once, the pose held fixed (one Gauss-Newton step of the
         point's information form), so that a point's estimate and covariance stay together until
         the graph's smoothed estimate replaces them: in the same frame by default, keyframes later
-        with the graph in a second process. (Holding the information back until then instead
-        kept new points' search regions at their seed's size: 14 % of tracks refused as too large
-        to search, 150 frames of `demo`.)"""
+        with the graph in a second process. (Held back until then, new points would keep their
+        seed's search regions, too large to search.)"""
         inlier = m.inlier
         idx, uv, H_point, residual_px = m.idx[inlier], m.uv[inlier], m.H_point[inlier], m.residual_px[inlier]
         live = self.live
