@@ -262,7 +262,7 @@ def test_effective_sample_size_of_correlated_frames():
     """n consecutive AR(1) errors with lag-1 correlation rho: the variance of their mean is
     sigma^2 (1 + 2 sum_k (1 - k/n) rho^k) / n; without correlation n frames are n samples, and for
     long runs the ratio tends to (1 - rho) / (1 + rho)."""
-    from dem_graph.estimators.isam2 import effective_sample_size
+    from dem_graph.estimators.online_filter import effective_sample_size
 
     np.testing.assert_allclose(effective_sample_size(np.array([1, 3, 7]), 0.0), [1, 3, 7])
     np.testing.assert_allclose(effective_sample_size(np.array([1]), 0.6), [1.0])

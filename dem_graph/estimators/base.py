@@ -11,7 +11,8 @@ import numpy as np
 
 from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
 from dem_graph.errors import EventOrderError
-from dem_graph.estimators.odometry import OdometryIntegrator
+from dem_graph.estimators.motion import FrameMotion
+from dem_graph.estimators.settings import MotionConfig
 from dem_graph.geometry.trajectory import Trajectory
 
 
@@ -103,22 +104,43 @@ class Estimator(abc.ABC):
         """Everything estimated so far (live points included with their current estimates)."""
 
 
+class ScanQueue:
+    """Laser scans waiting for the next frame that takes new points, in arrival order."""
+
+    def __init__(self):
+        self._scans: list[LaserScan] = []
+
+    def __len__(self) -> int:
+        return len(self._scans)
+
+    def append(self, scan: LaserScan) -> None:
+        self._scans.append(scan)
+
+    def take_until(self, t_s: float) -> list[LaserScan]:
+        """The scans at or before ``t_s`` (in arrival order), which leave the queue; later ones stay."""
+        taken, self._scans = [s for s in self._scans if s.t_s <= t_s], [s for s in self._scans if s.t_s > t_s]
+        return taken
+
+
 class FrameDrivenEstimator(Estimator):
     """The event handling GM, PTPM and the graph share: scans are queued for the next frame, and with
     odometry a frame is held until the odometry covering its time has arrived (at most one odometry
-    period later), so its motion is measured, not extrapolated. Subclasses set ``_odometry``,
-    ``_scans``, ``_pending_frame``, ``t_s``, ``use_odometry`` and ``wait_for_odometry`` and implement
-    :meth:`_process`, which must clear ``_pending_frame``. A frame not after the frame before it (or
-    before the start time) is an :class:`EventOrderError`."""
-
-    _odometry: OdometryIntegrator
-    _scans: list[LaserScan]
-    _pending_frame: CameraFrame | None
-    t_s: float  # the time the estimate is at
-    use_odometry: bool
-    wait_for_odometry: bool
+    period later), so its motion is measured, not extrapolated. Subclasses call this constructor
+    and implement :meth:`_process`, which must clear ``_pending_frame`` and take its motion from
+    ``_motion`` (:meth:`FrameMotion.advance`) and its scans from ``_scans``. A frame not after the
+    frame before it (or before the start time) is an :class:`EventOrderError`."""
 
     _last_frame_t_s: float | None = None  # the latest frame processed
+
+    def __init__(self, motion: MotionConfig, has_odometry: bool, t_start_s: float):
+        self._motion = FrameMotion(motion, has_odometry, t_start_s)
+        self._scans = ScanQueue()
+        self._pending_frame: CameraFrame | None = None
+
+    @property
+    def t_s(self) -> float:
+        """The time the estimate is at, seconds."""
+        return self._motion.t_s
 
     @abc.abstractmethod
     def _process(self, event: CameraFrame) -> FrameRecord: ...
@@ -133,7 +155,7 @@ class FrameDrivenEstimator(Estimator):
         return self._process(event)
 
     def on_odometry(self, event: Odometry) -> None:
-        self._odometry.add(event)
+        self._motion.add_odometry(event)
         if self._pending_frame is not None and event.t_s >= self._pending_frame.t_s:
             self._process_in_order(self._pending_frame)
 
@@ -143,7 +165,7 @@ class FrameDrivenEstimator(Estimator):
     def on_frame(self, event: CameraFrame) -> FrameRecord | None:
         if self._pending_frame is not None:
             self._process_in_order(self._pending_frame)
-        if self.use_odometry and self.wait_for_odometry and not self._odometry.covers(event.t_s):
+        if self._motion.holds(event.t_s):
             self._pending_frame = event
             return None
         return self._process_in_order(event)

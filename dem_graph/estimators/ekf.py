@@ -19,11 +19,12 @@ import numpy as np
 from pydantic import Field
 
 from dem_graph.config_types import StrictModel
-from dem_graph.datasets.events import CameraFrame, LaserScan
+from dem_graph.datasets.events import CameraFrame
 from dem_graph.estimators.base import EstimatorResult, FrameDrivenEstimator, FrameRecord
 from dem_graph.estimators.ekf_filter import EkfState
-from dem_graph.estimators.odometry import OdometryIntegrator
-from dem_graph.estimators.settings import FalseMatches, MotionConfig, SharedSettings
+from dem_graph.estimators.false_matches import FalseMatches
+from dem_graph.estimators.point_archive import PointArchive
+from dem_graph.estimators.settings import MotionConfig, SharedSettings
 from dem_graph.frontend.frontend import FrontEnd
 from dem_graph.frontend.pose_history import PoseHistory
 from dem_graph.geometry.rig import SensorRig
@@ -50,19 +51,15 @@ class EkfSlam(FrameDrivenEstimator):
         self.rig = rig
         self.frontend = FrontEnd(self.config.frontend, rig)
         m = self.config.motion
-        self.use_odometry = m.uses_odometry(has_odometry)
-        self.wait_for_odometry = m.wait_for_odometry
+        super().__init__(m, has_odometry, t_start_s)
         v0 = np.zeros(6)
         v0[3] = m.initial_speed_mps
         P_v0 = np.diag([0.3**2] * 3 + [m.initial_sigma_speed_mps**2] * 3)
         self.state = EkfState(T_world_body_initial, np.eye(6) * m.initial_sigma_pose**2, v0, P_v0)
-        self.t_s = float(t_start_s)
         self.history = PoseHistory()
         self.history.append(self.t_s, self.state.T_world_body)
-        self._odometry = OdometryIntegrator(self.t_s)
-        self._scans: list[LaserScan] = []
-        self._pending_frame: CameraFrame | None = None
-        self._result = EstimatorResult(self.name)
+        self._frames: list[FrameRecord] = []
+        self._archived = PointArchive(self.frontend)
         self._false_matches = FalseMatches(self.config.false_matches, self.frontend.counters)
         self._gate = self.frontend.tracker.gate_chi2
         self._R = self.config.frontend.sigma_px**2
@@ -88,20 +85,18 @@ class EkfSlam(FrameDrivenEstimator):
         timing["map"] = time.perf_counter() - t2
         timing["total"] = time.perf_counter() - t0
         record = FrameRecord(event.t_s, self.state.T_world_body.copy(), self.state.pose_covariance(), self.state.n_points, n_tracked, timing)
-        self._result.frames.append(record)
+        self._frames.append(record)
         return record
 
     # --- prediction --------------------------------------------------------------------------
     def _predict(self, t_s: float) -> None:
-        dt = t_s - self.t_s
-        if self.use_odometry:
-            U, Q = self._odometry.increment(t_s)
+        """Odometry moves the filter's pose (and sets its velocity); without it, its velocity does."""
+        dt, increment = self._motion.advance(t_s)
+        if increment is not None:
+            U, Q = increment
             self.state.predict_increment(U, Q, dt)
         elif dt > 0:
-            m = self.config.motion
-            sigma = np.array([m.sigma_angular_acc_radps2] * 3 + [m.sigma_linear_acc_mps2] * 3)
-            self.state.predict_constant_velocity(dt, sigma)
-        self.t_s = t_s
+            self.state.predict_constant_velocity(dt, self._motion.sigma_acc)
 
     # --- tracking and update -----------------------------------------------------------------
     def _camera_pose(self) -> np.ndarray:
@@ -126,24 +121,13 @@ class EkfSlam(FrameDrivenEstimator):
             templates = fe.templates(ids, None if warps is None else warps[sel])
             batch = fe.track_many(image, ids, templates, uv[sel], half_size_px=half, t_s=t_s, T_world_cam=T_wc)
             self.last_search_sizes = [(u, v) for u, v in batch.search_half_size_px.tolist()]
-            if self._false_matches.enabled:
-                ok_idx, innov = [], []
-                for i, ok, uv_found in zip(sel, batch.ok.tolist(), batch.uv_px):
-                    found, injected = self._false_matches.apply(uv_found if ok else None, uv[i])
-                    if found is None:
-                        continue
-                    if injected and not self._false_matches.record(np.max(np.abs(found - uv[i])) <= half):
-                        continue
-                    ok_idx.append(i)
-                    innov.append(found - uv[i])
-            else:
-                ok_idx = sel[batch.ok]
-                innov = batch.uv_px[batch.ok] - uv[ok_idx]
+            # an injected match must fall inside the searched square
+            ok, found_uv = self._false_matches.screen_batch(sel, batch, uv, lambda i, y: np.max(np.abs(y)) <= half)
+            innov = found_uv - uv[ok]
             t1 = time.perf_counter()
-            if len(ok_idx):
-                ok = np.array(ok_idx)
-                st.batch_update(ok, np.array(innov).reshape(-1, 2), Hp[ok], Hx[ok], self._R)
-            return len(ok_idx), t1 - t0, time.perf_counter() - t1
+            if len(ok):
+                st.batch_update(ok, innov, Hp[ok], Hx[ok], self._R)
+            return len(ok), t1 - t0, time.perf_counter() - t1
 
         # PTPM: most informative first (largest predicted innovation relative to the pixel noise)
         S_all = st.innovation_covariances(Hp, Hx, self._R)
@@ -166,14 +150,13 @@ class EkfSlam(FrameDrivenEstimator):
                 S = st.sequential_innovation_covariance(i, Hp[i], Hx[i], self._R)
                 res = fe.track(image, int(st.point_ids[i]), templates[k], uv_i, S_px2=S, t_s=t_s, T_world_cam=T_wc)
                 self.last_search_sizes.append(res.search_half_size_px)
-                found, injected = self._false_matches.apply(res.uv_px if res.ok else None, uv_i)
+                # an injected match must pass the point's chi-square gate
+                found = self._false_matches.screen(res.uv_px if res.ok else None, uv_i, lambda y, S=S: y @ np.linalg.solve(S, y) <= self._gate)
                 tb = time.perf_counter()
                 t_track += tb - ta
                 if found is None:
                     continue
                 y = found - uv_i
-                if injected and not self._false_matches.record(y @ np.linalg.solve(S, y) <= self._gate):
-                    continue
                 st.sequential_update(i, y, Hp[i], Hx[i], S)
                 n_ok += 1
                 t_update += time.perf_counter() - tb
@@ -184,15 +167,10 @@ class EkfSlam(FrameDrivenEstimator):
         return n_ok, t_track, t_update
 
     # --- map management ----------------------------------------------------------------------
-    def _archive(self, i: int, reason: str) -> None:
-        st = self.state
-        track = self.frontend.drop(int(st.point_ids[i]), reason)
-        self._result.points.add(track.point_id, track.kind, st.points_xyz[i], st.point_covariance(i), track.n_tracked, track.created_t_s)
-
     def _drop_points(self) -> np.ndarray:
-        """Archive the points that left the view or were lost; returns the pixels of those kept (n,2)."""
+        """Archive the points that left the view or were lost (at their estimates now); returns the pixels of those kept (n,2)."""
         st = self.state
-        keep, uv = self.frontend.drop_points(st.point_ids, st.points_xyz, st.T_world_body, self._archive)
+        keep, uv = self._archived.drop_points(st.point_ids, st.points_xyz, st.T_world_body, lambda i: (st.point_covariance(i), st.points_xyz[i]))
         st.remove_points(~keep)
         return uv
 
@@ -202,23 +180,15 @@ class EkfSlam(FrameDrivenEstimator):
     def _add_points(self, image, t_s: float, occupied_uv: np.ndarray) -> None:
         """New laser and camera points, away from the live points' pixels ``occupied_uv``."""
         st = self.state
-        scans, self._scans = [s for s in self._scans if s.t_s <= t_s], [s for s in self._scans if s.t_s > t_s]
-        new = self.frontend.new_points(image, t_s, st.T_world_body, scans, self.history, st.points_xyz, occupied_uv, self._speed_mps())
+        new = self.frontend.new_points(image, t_s, st.T_world_body, self._scans.take_until(t_s), self.history, st.points_xyz, occupied_uv, self._speed_mps())
         if new:
             st.add_points(np.array([p.point_id for p in new]), np.array([p.p_body for p in new]), np.array([p.Sigma_body for p in new]))
 
     # --- results -----------------------------------------------------------------------------
     def result(self) -> EstimatorResult:
         """Frames so far and every point: archived ones plus the live ones at their current estimate."""
-        res = EstimatorResult(self.name, list(self._result.frames))
-        for k in ("point_id", "kind", "xyz", "covariance", "n_tracked", "created_t_s"):
-            getattr(res.points, k).extend(getattr(self._result.points, k))
         st = self.state
-        for i in range(st.n_points):
-            track = self.frontend.tracks[int(st.point_ids[i])]
-            res.points.add(track.point_id, track.kind, st.points_xyz[i], st.point_covariance(i), track.n_tracked, track.created_t_s)
-        res.counters = self.frontend.counters.copy()
-        return res
+        return self._archived.result(self.name, self._frames, st.point_ids, lambda i: st.points_xyz[i], st.point_covariance)
 
 
 __all__ = ["EkfConfig", "EkfOptions", "EkfSlam", "MotionConfig"]

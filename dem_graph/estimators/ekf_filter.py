@@ -14,9 +14,9 @@ Pose and points share one world-frame ("right-invariant") error, as in the invar
 A change of the world frame (which no sensor here observes) is then the constant direction
 ``omega = w, nu = xi_i = u`` whatever the estimate, so the linearised filter cannot gain
 information along it. With the usual body-frame pose error and independent point errors, that
-direction moves with the estimate and the filter grows overconfident on long runs (pose NEES
-median 220-590 over the first 300-400 frames of the ``paper`` scenario, fed ideal measurements). The cost is that a rotation
-noise couples into every point: the prediction is a rank-6 update of the full covariance.
+direction moves with the estimate and the filter grows overconfident on long runs
+(docs/isam2_design.md). The cost is that a rotation noise couples into every point: the
+prediction is a rank-6 update of the full covariance.
 
 :meth:`EkfState.pose_covariance` and :meth:`EkfState.point_covariance` convert to the package's
 conventions (right perturbation of the pose, world-frame point covariance); the constructor takes

@@ -253,10 +253,10 @@ class ProcessGraph:
 
     Messages leave through a thread of their own: the second process reads only between updates, so
     during a long one (the window's cut, a relinearisation) the socket's buffer fills after a few
-    keyframes, and a send from the frame's own thread used to wait there while the process, answering
-    with a result larger than the buffer, waited for the frame to read. Now :meth:`send` waits only to
-    keep the front end within ``max_lag`` keyframes of the graph's newest result, and takes the results
-    that arrive meanwhile."""
+    keyframes, and a send from the frame's own thread would wait there, perhaps while the process,
+    answering with a result larger than the buffer, waits for the frame to read. :meth:`send` waits
+    only to keep the front end within ``max_lag`` keyframes of the graph's newest result, and takes
+    the results that arrive meanwhile."""
 
     def __init__(self, setup: GraphSetup, max_lag: int = 10):
         ours, theirs = socket.socketpair()

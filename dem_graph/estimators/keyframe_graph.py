@@ -11,10 +11,9 @@ estimate, and what they knew about the rest stays as linear factors (``LinearCon
 a new iSAM2 starts from the remaining factors. So the cost of an update follows the window, not the
 length of the run.
 
-Why not gtsam's ``IncrementalFixedLagSmoother``, which does this at every update inside the Bayes
-tree: on the ``paper`` log it ran away in the turns (keyframe corrections growing from 0.15 m to
-12 m), in settings where the same graph with no marginalisation at all stayed within 0.35 m (see
-docs/isam2_design.md). Its marginalisation has known defects (gtsam pull requests 1795, 1890).
+gtsam's ``IncrementalFixedLagSmoother``, which does this at every update inside the Bayes tree, is
+not used: its marginalisation lost the window where the same graph without marginalisation did not
+(docs/isam2_design.md).
 
 The latest estimate of every variable ever in the window is kept (:attr:`poses`, :attr:`points`):
 a marginalised variable keeps the value it had when it left.

@@ -1,17 +1,15 @@
 """Settings every estimator shares, so GM, PTPM and the graph run with the same front end.
 
 - :class:`MotionConfig`: how the pose is predicted between frames (odometry or constant velocity).
-- :class:`FalseMatchConfig` and :class:`FalseMatches`: replace a fraction of the tracker's matches by
-  wrong ones, for robustness studies.
+- :class:`FalseMatchConfig`: replace a fraction of the tracker's matches by wrong ones, for
+  robustness studies (:class:`~dem_graph.estimators.false_matches.FalseMatches` does it).
 - :class:`SharedSettings`: the front end, the motion model and the false matches, as one block.
 """
 
 from __future__ import annotations
 
-from collections import Counter
 from typing import Literal
 
-import numpy as np
 from pydantic import Field
 
 from dem_graph.config_types import StrictModel
@@ -42,39 +40,10 @@ class FalseMatchConfig(StrictModel):
     seed: int = Field(0, ge=0, description="random seed of the wrong matches")
 
 
-class FalseMatches:
-    """Replaces a tracked pixel by one ``offset_px`` away in a random direction, with probability
-    ``fraction``; counts what the estimator then does with it."""
-
-    def __init__(self, config: FalseMatchConfig, counters: Counter):
-        self.config = config
-        self.counters = counters
-        self._rng = np.random.default_rng(config.seed)
-
-    @property
-    def enabled(self) -> bool:
-        """False when :meth:`apply` returns every match unchanged (and draws nothing)."""
-        return self.config.fraction > 0
-
-    def apply(self, uv_found: np.ndarray | None, uv_predicted: np.ndarray) -> tuple[np.ndarray | None, bool]:
-        """``(pixel, injected)``: the match, or a wrong one near it (near the prediction if the tracker found nothing)."""
-        if self.config.fraction <= 0 or self._rng.random() >= self.config.fraction:
-            return uv_found, False
-        a = self._rng.uniform(0, 2 * np.pi)
-        base = uv_found if uv_found is not None else uv_predicted
-        return base + self.config.offset_px * np.array([np.cos(a), np.sin(a)]), True
-
-    def record(self, accepted: bool) -> bool:
-        """Count an injected match as accepted or rejected by the estimator; returns ``accepted``."""
-        self.counters["injected"] += 1
-        self.counters["injected_accepted" if accepted else "injected_rejected"] += 1
-        return accepted
-
-
 class SharedSettings(StrictModel):
     frontend: FrontendConfig = Field(default_factory=FrontendConfig, description="point management and tracking")
     motion: MotionConfig = Field(default_factory=MotionConfig, description="prediction between frames")
     false_matches: FalseMatchConfig = Field(default_factory=FalseMatchConfig, description="wrong matches injected for robustness studies")
 
 
-__all__ = ["FalseMatchConfig", "FalseMatches", "MotionConfig", "SharedSettings"]
+__all__ = ["FalseMatchConfig", "MotionConfig", "SharedSettings"]

@@ -1,0 +1,289 @@
+"""The graph estimator's side of its graph: what it sends, what it knows of the smoother's
+estimates, and how the results move its own.
+
+Each keyframe goes to the graph (:mod:`dem_graph.estimators.graph_worker`, in this process or in a
+second one) as a :class:`~dem_graph.estimators.graph_worker.KeyframeMessage`: the pose, the motion
+since the last keyframe, the inlier observations, the new landmarks with their seeds and the links
+of refreshed patches. A :class:`~dem_graph.estimators.graph_worker.GraphResult` (in the same frame,
+or keyframes later) gives the smoothed keyframe: its change since it was sent is a world-frame
+correction of the current pose and of the keyframes sent since, and the live points take the
+smoothed landmarks (or leave, when marginalised). A failed update restarts the smoother from the
+current estimates.
+
+The output covariance rides on the latest keyframe whose marginal is known (:class:`PoseAnchor`),
+carried to the frame by the motion covariance since.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from dem_graph.errors import DemGraphError
+from dem_graph.estimators.graph_worker import (
+    GraphResult,
+    GraphSetup,
+    InProcessGraph,
+    KeyframeMessage,
+    NewLandmark,
+    ProcessGraph,
+    RestartMessage,
+)
+from dem_graph.estimators.isam2_config import Isam2Config
+from dem_graph.estimators.keyframe_graph import KeyframeGraph
+from dem_graph.estimators.live_points import LivePoints
+from dem_graph.frontend.frontend import NewPoint
+from dem_graph.geometry.lie import adjoint, skew
+from dem_graph.geometry.rig import SensorRig
+from dem_graph.geometry.se3 import invert, nearest_pose, transform_points
+
+
+@dataclass
+class PoseAnchor:
+    """A keyframe's pose ``T`` (``T_world_body``) with its marginal covariance ``P`` from the smoother
+    (or the filter's, without marginals), the motion covariance ``Q`` since it and its time."""
+
+    T: np.ndarray
+    P: np.ndarray
+    Q: np.ndarray
+    t_s: float
+
+    def pose_covariance(self, T_world_body: np.ndarray) -> np.ndarray:
+        """The covariance of the pose ``T_world_body``: the marginal carried to it, plus the motion
+        covariance since (6x6, right perturbation)."""
+        A = adjoint(invert(invert(self.T) @ T_world_body))
+        P = A @ self.P @ A.T + self.Q
+        return 0.5 * (P + P.T)
+
+    def point_covariance(self, X_world: np.ndarray, info: np.ndarray) -> np.ndarray:
+        """A point's world covariance: its own (the inverse of its 3x3 information ``info``, relative to
+        the keyframes) plus the marginal carried to ``X_world`` (first order)."""
+        p_body = transform_points(invert(self.T), X_world[None])[0]
+        R = self.T[:3, :3]
+        J = np.concatenate([-R @ skew(p_body), R], axis=1)
+        return np.linalg.inv(info) + J @ self.P @ J.T
+
+
+class Landmarks:
+    """The numbering of the graph's landmarks ``L(j)``, one per patch segment of a point: which one
+    each point follows now, which keyframe's message started each, and the links of refreshed
+    patches waiting for the next keyframe."""
+
+    def __init__(self):
+        self._next = 0
+        self.of_point: dict[int, int] = {}  # point id -> its current landmark
+        self._keyframe: dict[int, int] = {}  # landmark -> the keyframe whose message started it
+        self._pending_links: list[tuple[int, int, np.ndarray]] = []  # (old, new landmark, old covariance)
+
+    def start(self, n: int) -> np.ndarray:
+        """Numbers for ``n`` new landmarks."""
+        landmarks = np.arange(self._next, self._next + n)
+        self._next += n
+        return landmarks
+
+    def split(self, point_id: int, old: int, Sigma_old: np.ndarray) -> int:
+        """Point ``point_id``'s patch was refreshed: it follows a new landmark from now, linked to
+        ``old`` (covariance ``Sigma_old``) at the next keyframe; returns the new landmark."""
+        new = self._next
+        self._next += 1
+        self._pending_links.append((old, new, Sigma_old))
+        self.of_point[point_id] = new
+        return new
+
+    def take_links(self) -> list[tuple[int, int, np.ndarray]]:
+        links, self._pending_links = self._pending_links, []
+        return links
+
+    def drop_links(self) -> None:
+        self._pending_links = []
+
+    def entered(self, landmarks, k: int) -> None:
+        """``landmarks`` entered the graph with keyframe ``k``'s message (or its restart)."""
+        for lm in landmarks:
+            self._keyframe[lm] = k
+
+    def entered_after(self, landmark: int, k: int) -> bool:
+        return self._keyframe.get(landmark, -1) > k
+
+
+class GraphClient:
+    """Sends keyframes to the graph and applies its results; keeps every keyframe's time and the
+    latest estimates of keyframes (``poses``) and landmarks (``points``), the last keyframe's pose
+    ``T_kf`` and the motion since it (``U_kf``, ``Q_kf``)."""
+
+    def __init__(self, config: Isam2Config, rig: SensorRig, T_world_body: np.ndarray, P0: np.ndarray, t_s: float, counters: Counter):
+        c = config
+        setup = GraphSetup(
+            T_world_body.copy(), P0, t_s, c.lag_s, c.relinearize_threshold, c.relinearize_skip, c.marginalize_every_s, c.optimizer,
+            rig.camera_model, np.array(rig.T_body_cam, dtype=float), c.frontend.camera_point_sigma_px, c.split_link_sigma_m, c.robust,
+        )  # fmt: skip
+        self._graph = ProcessGraph(setup, c.graph_max_lag) if c.graph_process else InProcessGraph(setup)
+        self._pose_covariance_every_s = c.pose_covariance_every_s
+        self._counters = counters
+        self.keyframe_t_s: list[float] = [t_s]
+        self.poses: dict[int, np.ndarray] = {0: T_world_body.copy()}
+        self.points: dict[int, np.ndarray] = {}
+        self.landmarks = Landmarks()
+        # keyframes sent whose result is not back: the front end's pose for each (moved with every
+        # correction since) and the motion covariance since it
+        self._sent_T: dict[int, np.ndarray] = {}
+        self._Q_since: dict[int, np.ndarray] = {}
+        self._graph_lag: list[int] = []  # per result: keyframes sent since the one it answers
+        self.T_kf = T_world_body.copy()  # the last keyframe's pose
+        self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))  # motion since the last keyframe
+        self.anchor = PoseAnchor(T_world_body.copy(), P0.copy(), np.zeros((6, 6)), t_s)
+        self._marginal_asked = False  # a keyframe's marginal has been asked for and is not back
+        self._frame_anchor: list[tuple[int, np.ndarray]] = []  # per frame: (keyframe, T_keyframe_frame)
+
+    @property
+    def graph(self) -> KeyframeGraph:
+        """The smoother itself, when it runs in this process (studies and tests)."""
+        if not self.in_process:
+            raise DemGraphError("the graph runs in a second process (graph_process: true); its smoother is not reachable from here")
+        return self._graph.worker.graph
+
+    @property
+    def in_process(self) -> bool:
+        return isinstance(self._graph, InProcessGraph)
+
+    # --- per frame ---------------------------------------------------------------------------
+    def carry(self, U: np.ndarray, Q: np.ndarray) -> None:
+        """A frame's motion ``U`` (covariance ``Q``) extends the motion since the last keyframe and
+        the motion covariances since the anchor and since each keyframe whose result is not back."""
+        A = adjoint(invert(U))
+        self.U_kf = self.U_kf @ U
+        self.Q_kf = A @ self.Q_kf @ A.T + Q
+        self.anchor.Q = A @ self.anchor.Q @ A.T + Q
+        for k, Q_k in self._Q_since.items():
+            self._Q_since[k] = A @ Q_k @ A.T + Q
+
+    def split_landmark(self, point_id: int, old: int, Sigma_old: np.ndarray) -> int:
+        """A refreshed patch: point ``point_id`` continues on a new landmark (see :meth:`Landmarks.split`),
+        at the old one's estimate until the graph has it; returns the new landmark."""
+        new = self.landmarks.split(point_id, old, Sigma_old)
+        self.points[new] = self.points[old].copy()  # its estimate until the graph has it
+        return new
+
+    def anchor_frame(self, T_world_body: np.ndarray) -> None:
+        """Keep the frame's pose relative to the last keyframe, for :meth:`smoothed_poses`."""
+        k = len(self.keyframe_t_s) - 1
+        self._frame_anchor.append((k, invert(self.T_kf) @ T_world_body))
+
+    # --- keyframes ---------------------------------------------------------------------------
+    def send_keyframe(
+        self, t_s: float, T_world_body: np.ndarray, P_loc: np.ndarray, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The keyframe's message to the graph: its pose, the motion since the last one, its
+        observations, the new points with their seeds and the refreshed patches' links. Returns the
+        new points' landmarks, world positions and covariances (None without new points)."""
+        T = T_world_body
+        k = len(self.keyframe_t_s) - 1
+        if t_s > self.keyframe_t_s[-1]:  # else: the first frame, at the start pose's time
+            k += 1
+            self.keyframe_t_s.append(t_s)
+        new_landmarks = []
+        started = None
+        if new:
+            R = T[:3, :3]
+            X_world = transform_points(T, np.array([p.p_body for p in new]))
+            Sigma_world = R @ np.array([p.Sigma_body for p in new]) @ R.T
+            landmarks = self.landmarks.start(len(new))
+            for p, lm, Xw in zip(new, landmarks, X_world):
+                new_landmarks.append(NewLandmark(int(lm), Xw, p.kind, np.asarray(p.p_body, dtype=float), np.asarray(p.Sigma_body, dtype=float)))
+                self.landmarks.of_point[p.point_id] = int(lm)
+                self.points[int(lm)] = Xw
+            started = landmarks, X_world, Sigma_world
+        links = self.landmarks.take_links()
+        self.landmarks.entered([p.landmark for p in new_landmarks] + [new_lm for _, new_lm, _ in links], k)
+        every = self._pose_covariance_every_s
+        want_marginal = every > 0 and not self._marginal_asked and t_s - self.anchor.t_s >= every
+        self._marginal_asked |= want_marginal
+        self._graph.send(KeyframeMessage(k, t_s, T.copy(), self.U_kf, self.Q_kf, *observations, links, new_landmarks, want_marginal))
+        self._sent_T[k] = T.copy()
+        self._Q_since[k] = np.zeros((6, 6))
+        self.poses.setdefault(k, T.copy())  # until the graph's estimate is back
+        self.T_kf = T.copy()
+        self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))
+        if every <= 0:
+            self.anchor.T, self.anchor.P, self.anchor.Q = T.copy(), P_loc.copy(), np.zeros((6, 6))
+        return started
+
+    def results(self) -> list[GraphResult]:
+        """The graph's results that have arrived (in-process: every message's, at once)."""
+        return self._graph.results()
+
+    def apply(self, r: GraphResult, live: LivePoints) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+        """Take the graph's result: the smoothed keyframe ``r.k`` moves the last keyframe and the
+        keyframes sent since (a world-frame correction), its marginal (if asked for) becomes the
+        anchor, and the live points take the graph's estimates. Returns the correction (None when
+        the keyframe was sent before a restart), its nearest pose ``C`` (identity then) and the mask
+        of the live points still in the graph (the others were marginalised)."""
+        k = r.k
+        self.poses.update(r.poses)
+        self.points.update(r.points)
+        self._graph_lag.append(len(self.keyframe_t_s) - 1 - k)
+        correction, C = None, np.eye(4)
+        if k in self._sent_T:
+            # kept on SE(3): corrections compose, and invert() assumes orthonormal rotations
+            correction = r.poses[k] @ invert(self._sent_T[k])
+            C = nearest_pose(correction)
+            self.T_kf = C @ self.T_kf
+            self._sent_T = {j: C @ T for j, T in self._sent_T.items() if j > k}
+        if r.marginal is not None:
+            self.anchor.T, self.anchor.P, self.anchor.Q = r.poses[k].copy(), r.marginal, self._Q_since[k].copy()
+            self.anchor.t_s = self.keyframe_t_s[k]
+            self._marginal_asked = False
+        self._Q_since = {j: Q for j, Q in self._Q_since.items() if j > k}
+        keep = np.ones(len(live), dtype=bool)
+        for i, lm in enumerate(live.landmark):
+            lm = int(lm)
+            X_lm = r.points.get(lm)
+            if X_lm is not None:
+                live.X[i] = X_lm
+            elif self.landmarks.entered_after(lm, k):  # started after keyframe k: placed from a pose the correction has moved
+                live.X[i] = transform_points(C, live.X[i][None])[0]
+                self.points[lm] = live.X[i].copy()
+            else:
+                keep[i] = False
+        return correction, C, keep
+
+    def restart(self, live: LivePoints, T_world_body: np.ndarray) -> None:
+        """A new smoother at the newest keyframe, from the front end's estimates: the live points
+        and the current pose ``T_world_body``'s covariance."""
+        self._counters["graph_restarts"] += 1
+        k = len(self.keyframe_t_s) - 1
+        priors = {int(lm): (live.X[i].copy(), self.anchor.point_covariance(live.X[i], live.info[i])) for i, lm in enumerate(live.landmark)}
+        self.landmarks.entered(priors, k)
+        self.landmarks.drop_links()
+        self._marginal_asked = False
+        self._sent_T = {k: self.T_kf.copy()}
+        self._graph.send(RestartMessage(k, self.T_kf.copy(), self.anchor.pose_covariance(T_world_body), priors))
+
+    # --- the end -----------------------------------------------------------------------------
+    def finish(self) -> tuple[list[GraphResult], tuple[dict[int, np.ndarray], dict[int, np.ndarray]]]:
+        """The results not yet taken, and the final estimates once the graph has applied every message."""
+        return self._graph.finish()
+
+    def close(self, final_estimates: tuple[dict[int, np.ndarray], dict[int, np.ndarray]]) -> None:
+        """Keep the graph's final estimates of every keyframe and landmark, and stop it."""
+        poses, points = final_estimates
+        self.poses.update(poses)
+        self.points.update(points)
+        self._graph.close()
+
+    def smoothed_poses(self) -> np.ndarray:
+        """Every frame's pose from the latest keyframe estimates (each frame rides on the keyframe before it)."""
+        poses = self.poses
+        return np.array([poses[k] @ T_rel for k, T_rel in self._frame_anchor]).reshape(-1, 4, 4)
+
+    def count(self, counters: Counter) -> None:
+        """The keyframes made and how late the graph's results came (median and most keyframes)."""
+        counters["keyframes"] = len(self.keyframe_t_s)
+        if self._graph_lag:
+            counters["graph_lag_keyframes_median"] = int(np.median(self._graph_lag))
+            counters["graph_lag_keyframes_max"] = int(np.max(self._graph_lag))
+
+
+__all__ = ["GraphClient", "Landmarks", "PoseAnchor"]

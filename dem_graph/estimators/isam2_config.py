@@ -1,0 +1,76 @@
+"""The graph estimator's options (:mod:`dem_graph.estimators.isam2`), and the settings it shares
+with the EKF baselines."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from dem_graph.config_types import StrictModel
+from dem_graph.estimators.settings import SharedSettings
+
+
+class Isam2Options(StrictModel):
+    """What only the graph estimator has."""
+
+    keyframe_every: int = Field(1, ge=1, description="a keyframe every this many frames (1: every frame a pose of the graph; more is faster and less accurate, docs/isam2_design.md)")
+    keyframe_min_live_fraction: float = Field(0.8, ge=0, le=1, description="also a keyframe when the live points fall below this fraction of the cap (new points enter at keyframes)")
+    lag_s: float = Field(1.5, gt=0, description="fixed lag of the smoother, seconds: older variables are marginalised")
+    marginalize_every_s: float = Field(
+        0.5, gt=0, description="the window is cut back to the lag once it spans lag_s + this, seconds (one batch elimination of the window)"
+    )
+    relinearize_threshold: float = Field(0.01, gt=0, description="iSAM2 relinearises a variable whose update exceeds this")
+    relinearize_skip: int = Field(1, ge=1, description="iSAM2 checks for relinearisation every this many updates")
+    optimizer: Literal["dogleg", "gauss_newton"] = Field(
+        "dogleg",
+        description="iSAM2's step: dogleg (a trust region) or plain Gauss-Newton. Nothing but the odometry observes the window's absolute height and tilt, "
+        "and the trust region bounds the steps along them (docs/isam2_design.md)",
+    )
+    keyframe_weighting: bool = Field(
+        True, description="a keyframe observation carries the information of the frames that tracked the point since its last keyframe observation (sigma_px / sqrt(n))"
+    )
+    track_correlation: float = Field(
+        0.0, ge=0, lt=1, description="lag-1 autocorrelation of a track's pixel errors from frame to frame (AR(1)); n frames then carry the information of n_eff < n independent ones"
+    )
+    split_link_sigma_m: float = Field(
+        0.005, gt=0, description="a patch refresh starts a new landmark, tied to the old one with this sigma (the ground point under the new patch is a few mm away), metres"
+    )
+    robust: bool = Field(True, description="Huber kernel on projection factors and per-frame pixels")
+    outlier_chi2: float = Field(9.21, gt=0, description="an observation whose normalised residual after the frame's pose update exceeds this (chi-square, 2 dof; 9.21 = 99 %) stays out of the graph")
+    pose_covariance_every_s: float = Field(
+        1.0, ge=0, description="take a keyframe pose's marginal covariance from the smoother (a costly call) at most this often, seconds; in between it is carried by odometry; 0: never (the covariance relative to the map)"
+    )
+    graph_process: bool = Field(
+        False,
+        description="run the graph (iSAM2 updates, the window's cut, marginals) in a second process, on another core: a frame then costs the front end's time, "
+        "and the graph's results reach the front end one or more keyframes later (a run then depends on the timing); false: each keyframe's update ends in its own frame",
+    )
+    graph_max_lag: int = Field(
+        10,
+        ge=1,
+        description="graph_process: keyframes the front end may run ahead of the graph's newest result before a frame waits for it; "
+        "more keep frames short while an update runs long, at the price of later corrections",
+    )
+    batch_keyframe_every: int = Field(
+        5,
+        ge=1,
+        description="isam2-batch: keyframe_every of its online pass, which only associates the data (the batch has a pose for every frame); "
+        "fewer keyframes make that pass cheaper (docs/isam2_design.md)",
+    )
+    batch_max_iterations: int = Field(10, ge=1, description="isam2-batch: Levenberg-Marquardt iterations at most")
+    batch_relative_error_tol: float = Field(1e-3, gt=0, description="isam2-batch: stop when the error falls by less than this fraction")
+
+
+class Isam2Config(SharedSettings, Isam2Options):
+    """The graph estimator's options with the settings every estimator shares."""
+
+    batch: bool = Field(False, description="record every observation and smooth the whole log at the end (isam2-batch)")
+
+    @property
+    def keyframe_spacing(self) -> int:
+        """Frames between keyframes in this run: ``batch_keyframe_every`` for the batch's online pass, else ``keyframe_every``."""
+        return self.batch_keyframe_every if self.batch else self.keyframe_every
+
+
+__all__ = ["Isam2Config", "Isam2Options"]
