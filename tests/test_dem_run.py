@@ -125,3 +125,10 @@ def test_a_run_without_any_laser_return_makes_its_dem_from_the_map_points_alone(
     dem = run.dem.dem
     assert np.all(dem.layers["laser_count"] == 0)
     assert np.all(np.isfinite(dem.variance[dem.covered]))
+
+
+def test_dem_command_with_a_resolution_of_zero_is_one_line(run_folder, tmp_path):
+    log, out = run_folder
+    r = CliRunner().invoke(main, ["--no-progress", "dem", str(out), "--dataset", str(log), "--resolution", "0", "--out", str(tmp_path / "d")])
+    assert r.exit_code == 2 and r.stderr.count("\n") == 1
+    assert "invalid DEM resolution: resolution_m: Input should be greater than 0" in r.stderr
