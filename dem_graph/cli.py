@@ -144,12 +144,13 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_
     from dem_graph.pipeline.metrics import summary_lines
     from dem_graph.pipeline.run import run_dataset
 
-    fmt = kwargs.pop("fmt")
+    options = _pop_dataset_options(kwargs)
+    fmt = options.pop("fmt")
     overrides = RunOverrides(
         estimator=estimator, max_frames=max_frames, max_points=max_points, no_odometry=no_odometry, lag_s=lag_s,
         keyframe_every=keyframe_every, graph_process=graph_process, realtime=realtime,
     )
-    result = run_dataset(dataset, overrides, config_path, out_dir, _dataset_options_of(kwargs), fmt)
+    result = run_dataset(dataset, overrides, config_path, out_dir, _dataset_options_of(options), fmt)
     for line in summary_lines(result.metrics):
         click.echo(line)
     click.echo(f"run folder: {out_dir} ({', '.join(p.name for p in result.paths.values())})")
@@ -167,6 +168,7 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_
 @_friendly_errors
 def dem(run_dir, dataset, at_s, resolution_m, out_dir) -> None:
     """Make a run's DEM again from its poses (global, or the local map at a time)."""
+    from dem_graph.pipeline.run_dem import DemMetrics
     from dem_graph.pipeline.run_folder import remake_dem, write_run_dem
 
     result = remake_dem(run_dir, dataset, at_s, resolution_m)
@@ -174,7 +176,7 @@ def dem(run_dir, dataset, at_s, resolution_m, out_dir) -> None:
     paths = write_run_dem(result, out_dir)
     m = result.metrics
     click.echo(f"DEM ({result.dem.frame}): {m.covered_cells} cells of {result.dem.geometry.resolution_m:g} m covered")
-    e, c = getattr(m, "height_error_laser_cells", None), getattr(m, "corridor", None)
+    e, c = (m.height_error_laser_cells, m.corridor) if isinstance(m, DemMetrics) else (None, None)  # a local map has no truth figures
     if e is not None and c is not None:
         click.echo(f"height RMSE {100 * e.rmse_m:.1f} cm over the laser-swept cells; corridor {100 * c.coverage:.0f} % covered")
     click.echo(f"written: {', '.join(str(p) for p in paths.values())}")

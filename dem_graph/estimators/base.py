@@ -15,6 +15,12 @@ from dem_graph.estimators.motion import FrameMotion
 from dem_graph.estimators.settings import MotionConfig
 from dem_graph.geometry.trajectory import Trajectory
 
+# other estimates of every frame's pose an estimator may give (EstimatorResult.extra_poses), by name:
+# each is written as <name>.tum and measured under its name
+SMOOTHED_TRAJECTORY = "trajectory_smoothed"  # isam2: every frame as smoothed at the end of the run
+ONLINE_TRAJECTORY = "trajectory_online"  # isam2-batch: its online pass
+EXTRA_TRAJECTORIES = (SMOOTHED_TRAJECTORY, ONLINE_TRAJECTORY)
+
 
 @dataclass
 class MapPoints:

@@ -21,7 +21,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from dem_graph.errors import DemGraphError, one_line
-from dem_graph.estimators.base import EstimatorResult
+from dem_graph.estimators.base import ONLINE_TRAJECTORY, EstimatorResult
 from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
 from dem_graph.estimators.measurement_log import MeasurementLog
 from dem_graph.geometry.rig import SensorRig
@@ -41,10 +41,10 @@ class BatchResult:
     n_factors: int
 
     def apply_to(self, res: EstimatorResult, landmark_of: dict[int, int]) -> EstimatorResult:
-        """The online result with the smoothed poses and points (the online poses kept as ``trajectory_online``)."""
+        """The online result with the smoothed poses and points (the online poses kept as :data:`ONLINE_TRAJECTORY`)."""
         online = np.array([f.T_world_body for f in res.frames])
         res.frames = [replace(f, T_world_body=self.poses[i]) for i, f in enumerate(res.frames)]
-        res.extra_poses["trajectory_online"] = online
+        res.extra_poses[ONLINE_TRAJECTORY] = online
         res.points.xyz = [self.points.get(landmark_of.get(pid, -1), xyz) for pid, xyz in zip(res.points.point_id, res.points.xyz)]
         res.counters["batch_iterations"] = self.iterations
         res.counters["batch_factors"] = self.n_factors

@@ -149,10 +149,11 @@ class GraphClient:
         return isinstance(self._graph, InProcessGraph)
 
     # --- per frame ---------------------------------------------------------------------------
-    def carry(self, U: np.ndarray, Q: np.ndarray) -> None:
-        """A frame's motion ``U`` (covariance ``Q``) extends the motion since the last keyframe and
-        the motion covariances since the anchor and since each keyframe whose result is not back."""
-        A = adjoint(invert(U))
+    def carry(self, U: np.ndarray, Q: np.ndarray, A: np.ndarray | None = None) -> None:
+        """A frame's motion ``U`` (covariance ``Q``; ``A``: ``adjoint(invert(U))`` when the caller has
+        it) extends the motion since the last keyframe and the motion covariances since the anchor
+        and since each keyframe whose result is not back."""
+        A = adjoint(invert(U)) if A is None else A
         self.U_kf = self.U_kf @ U
         self.Q_kf = A @ self.Q_kf @ A.T + Q
         self.anchor.Q = A @ self.anchor.Q @ A.T + Q

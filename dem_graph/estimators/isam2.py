@@ -47,7 +47,7 @@ import time
 import numpy as np
 
 from dem_graph.datasets.events import CameraFrame
-from dem_graph.estimators.base import EstimatorResult, FrameDrivenEstimator, FrameRecord
+from dem_graph.estimators.base import SMOOTHED_TRAJECTORY, EstimatorResult, FrameDrivenEstimator, FrameRecord
 from dem_graph.estimators.batch_log import BatchLog
 from dem_graph.estimators.graph_client import GraphClient
 from dem_graph.estimators.graph_worker import GraphResult
@@ -59,7 +59,9 @@ from dem_graph.estimators.motion import constant_velocity_increment
 from dem_graph.estimators.online_filter import OnlineFilter
 from dem_graph.estimators.point_archive import PointArchive
 from dem_graph.frontend.frontend import FrontEnd, NewPoint
+from dem_graph.geometry.lie import adjoint
 from dem_graph.geometry.rig import SensorRig
+from dem_graph.geometry.se3 import invert
 
 log = logging.getLogger(__name__)
 
@@ -127,8 +129,9 @@ class Isam2Slam(FrameDrivenEstimator):
         timing = {}
         t0 = time.perf_counter()
         dt, U, Q = self._motion_since_last_frame(event.t_s)
-        T_pred = filt.predict(U, Q)
-        client.carry(U, Q)
+        A = adjoint(invert(U))  # carries every covariance over the frame's motion
+        T_pred = filt.predict(U, Q, A)
+        client.carry(U, Q, A)
         t1 = time.perf_counter()
         m = filt.track(event.image, event.t_s, T_pred)
         t2 = time.perf_counter()
@@ -263,7 +266,7 @@ class Isam2Slam(FrameDrivenEstimator):
         if batch_result is not None:
             return batch_result.apply_to(res, landmark_of)
         if self._frames:
-            res.extra_poses["trajectory_smoothed"] = self.smoothed_poses()
+            res.extra_poses[SMOOTHED_TRAJECTORY] = self.smoothed_poses()
         return res
 
 

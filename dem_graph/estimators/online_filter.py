@@ -77,10 +77,10 @@ class OnlineFilter:
         self._false_matches = FalseMatches(config.false_matches, frontend.counters)
 
     # --- one frame ---------------------------------------------------------------------------
-    def predict(self, U: np.ndarray, Q: np.ndarray) -> np.ndarray:
-        """Carry the pose covariance over the motion ``U`` since the last frame (covariance ``Q``);
-        returns the predicted pose."""
-        A = adjoint(invert(U))
+    def predict(self, U: np.ndarray, Q: np.ndarray, A: np.ndarray | None = None) -> np.ndarray:
+        """Carry the pose covariance over the motion ``U`` since the last frame (covariance ``Q``;
+        ``A``: ``adjoint(invert(U))`` when the caller has it); returns the predicted pose."""
+        A = adjoint(invert(U)) if A is None else A
         self.P_loc = A @ self.P_loc @ A.T + Q
         return self.T @ U
 

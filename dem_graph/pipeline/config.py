@@ -14,7 +14,7 @@ here, so a notebook and the command line run the same thing.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, get_args
 
@@ -99,10 +99,6 @@ class RunOverrides:
         if self.realtime:
             config.realtime = True
         return config
-
-    def given(self) -> dict:
-        """The overrides that are set, by name."""
-        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) not in (None, False)}
 
 
 def merge_settings(base: dict, over: dict) -> dict:

@@ -14,10 +14,6 @@ from dem_graph.evaluation.timing import PhaseTiming, frame_timing_summary
 from dem_graph.evaluation.trajectory_metrics import NeesSummary, TrajectoryAccuracy, accuracy_summary, nees_summary, pose_nees
 from dem_graph.pipeline.run_dem import DemFailure, DemMetrics
 
-# other estimates of every frame's pose an estimator may give (EstimatorResult.extra_poses), each
-# written as <name>.tum and measured under its name
-EXTRA_TRAJECTORIES = ("trajectory_smoothed", "trajectory_online")
-
 
 class PointsPerFrame(MetricsModel):
     live_median: float  # live points per frame, median
@@ -38,6 +34,7 @@ class RunMetrics(MetricsModel):
     map_points: int | None = None  # points ever estimated
     events: dict[str, int | float] | None = None  # the estimator's counters (tracking outcomes, points added and dropped, ...)
     trajectory: TrajectoryAccuracy | None = None  # the per-frame estimate against the truth
+    # the estimators' extra trajectories (estimators.base.EXTRA_TRAJECTORIES), by their names
     trajectory_smoothed: TrajectoryAccuracy | None = None  # isam2: every frame as smoothed at the end of the run
     trajectory_online: TrajectoryAccuracy | None = None  # isam2-batch: its online pass
     pose_nees: NeesSummary | None = None
@@ -101,4 +98,4 @@ def summary_lines(m: RunMetrics) -> list[str]:
     return lines
 
 
-__all__ = ["EXTRA_TRAJECTORIES", "PointsPerFrame", "RunMetrics", "compute_metrics", "summary_lines"]
+__all__ = ["PointsPerFrame", "RunMetrics", "compute_metrics", "summary_lines"]

@@ -22,7 +22,7 @@ from dem_graph.dem.layers import Dem
 from dem_graph.dem.returns import GroundReturns, PoseTrack, ReturnSource, laser_returns_world, map_point_returns
 from dem_graph.dem.views import global_dem, local_dem, speed_at
 from dem_graph.errors import DemGraphError
-from dem_graph.estimators.base import EstimatorResult
+from dem_graph.estimators.base import SMOOTHED_TRAJECTORY, EstimatorResult
 from dem_graph.evaluation.dem_metrics import (
     CorridorCoverage,
     HeightErrors,
@@ -40,13 +40,10 @@ from dem_graph.pipeline.config import DemConfig
 
 log = logging.getLogger(__name__)
 
-SMOOTHED = "trajectory_smoothed"
-
-
 def pose_track_from_result(result: EstimatorResult) -> PoseTrack:
     """The run's best poses (see the module) with the per-frame covariances."""
     t = np.array([f.t_s for f in result.frames])
-    poses = result.extra_poses.get(SMOOTHED)
+    poses = result.extra_poses.get(SMOOTHED_TRAJECTORY)
     if poses is None:
         poses = np.array([f.T_world_body for f in result.frames])
     return PoseTrack(t, np.asarray(poses, dtype=float), result.pose_covariances())
@@ -151,11 +148,10 @@ def make_run_dem(
         fused=dem.n_used,
         covered_cells=int(dem.covered.sum()),
         rebuild_s=rebuild_s,
+        **(evaluate_dem(dem, ground_truth, corridor_half_width_m) if ground_truth is not None else {}),
     )
     series = None
     if ground_truth is not None:
-        for name, value in evaluate_dem(dem, ground_truth, corridor_half_width_m).items():
-            setattr(m, name, value)
         if local_errors and ground_truth.elevation is not None:
             series = local_error_series(
                 returns, poses, ground_truth.elevation, poses.t_s[:: window.every_n_frames], window.x_range_m, window.width_m / 2.0,

@@ -26,9 +26,10 @@ from dem_graph.config_types import format_validation_error
 from dem_graph.datasets.base import GroundTruth, Sequence
 from dem_graph.datasets.open import open_sequence
 from dem_graph.errors import DatasetError, DemGraphError
+from dem_graph.estimators.base import EXTRA_TRAJECTORIES
 from dem_graph.evaluation.trajectory_metrics import TrajectoryAccuracy, accuracy_summary
 from dem_graph.io.tum import read_tum
-from dem_graph.pipeline.metrics import EXTRA_TRAJECTORIES, RunMetrics
+from dem_graph.pipeline.metrics import RunMetrics
 from dem_graph.pipeline.run_dem import DemFailure, DemMetrics, RunDem
 from dem_graph.pipeline.run_folder import (
     METRICS_JSON,

@@ -19,7 +19,7 @@ from dem_graph.viz.plotting import colour, pyplot, save_figure
 FRAME_BUDGET_MS = 40.0  # one camera frame at 25 Hz
 
 
-class BenchRow(Protocol):
+class TimedRow(Protocol):
     """What the figure reads of a benchmark's row (:class:`dem_graph.studies.bench_estimators.BenchRow`)."""
 
     estimator: str
@@ -44,7 +44,7 @@ class BenchFigure:
     series: dict[str, TimeSeries]  # what was plotted, per estimator
 
 
-def time_series(rows: list[BenchRow]) -> dict[str, TimeSeries]:
+def time_series(rows: list[TimedRow]) -> dict[str, TimeSeries]:
     """The benchmark's rows grouped by estimator (in the order they first appear), each sorted by live points."""
     series = {}
     for name in dict.fromkeys(r.estimator for r in rows):
@@ -57,7 +57,7 @@ def time_series(rows: list[BenchRow]) -> dict[str, TimeSeries]:
     return series
 
 
-def time_per_frame_figure(path: str | Path, rows: list[BenchRow], title: str = "") -> BenchFigure:
+def time_per_frame_figure(path: str | Path, rows: list[TimedRow], title: str = "") -> BenchFigure:
     """Fig. 12 as a PNG at ``path``: median time per frame (line) and up to its 95th percentile (band)
     against the live points per frame, one line per estimator, and the 40 ms (25 Hz) budget."""
     import matplotlib.ticker

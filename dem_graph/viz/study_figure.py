@@ -12,7 +12,7 @@ from dem_graph.viz.plotting import colour, pyplot, save_figure
 _MARKERS = ("o", "s", "^", "D", "v", "P", "X")
 
 
-class StudyRow(Protocol):
+class RunPoint(Protocol):
     """What the figure reads of a study's row (:class:`dem_graph.studies.study.StudyRow`)."""
 
     estimator: str
@@ -21,7 +21,7 @@ class StudyRow(Protocol):
     frame_ms_median: float
 
 
-def accuracy_cost_figure(path: str | Path, rows: list[StudyRow], title: str = "") -> Path:
+def accuracy_cost_figure(path: str | Path, rows: list[RunPoint], title: str = "") -> Path:
     """Each run with a finite ATE as a point: median time per frame (x) against ATE anchored at
     the initial pose (y); colour per estimator, marker per speed; the 40 ms (25 Hz) budget dashed."""
     plt = pyplot()
