@@ -118,6 +118,33 @@ class GroundReturns:
         return self.select(self.t_s <= t_s)
 
 
+def valid_beams(ranges_m: np.ndarray, rig: SensorRig) -> np.ndarray:
+    """Mask of the beams with a usable return: finite and inside the laser's range limits."""
+    laser = rig.laser
+    r = np.asarray(ranges_m, dtype=float)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(r) & (r >= laser.range_min_m) & (r <= laser.range_max_m)
+
+
+def returns_in_body(ranges_m: np.ndarray, beam_idx: np.ndarray, rig: SensorRig) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (ranges of beams ``beam_idx``) in the body frame: points (N,3) and beam directions (N,3)."""
+    T_body_laser = rig.T_body_laser
+    d_body = (rig.laser.beam_directions() @ T_body_laser[:3, :3].T)[beam_idx]
+    return np.asarray(ranges_m, dtype=float)[:, None] * d_body + T_body_laser[:3, 3], d_body
+
+
+def place_returns(p_body: np.ndarray, d_body: np.ndarray, T_world_body: np.ndarray, P: np.ndarray, range_sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """World positions (N,3) and height variances (N,) of body-frame returns, each placed with its
+    pose (N,4,4) and pose covariance (N,6,6) (the module's equations)."""
+    R = T_world_body[:, :3, :3]
+    xyz = np.einsum("nij,nj->ni", R, p_body) + T_world_body[:, :3, 3]
+    a = R[:, 2, :]  # world up in the body frame (rows of R^T e_z)
+    J = np.concatenate([np.cross(p_body, a), a], axis=1)
+    var_pose = np.einsum("ni,nij,nj->n", J, P, J)
+    var_range = (np.einsum("ni,ni->n", a, d_body) * range_sigma_m) ** 2
+    return xyz, var_pose + var_range
+
+
 def laser_returns_world(scan_t_s: np.ndarray, ranges_m: np.ndarray, rig: SensorRig, poses: PoseTrack) -> GroundReturns:
     """Every valid laser return of every scan, placed with the pose at its scan's time.
 
@@ -136,8 +163,7 @@ def laser_returns_world(scan_t_s: np.ndarray, ranges_m: np.ndarray, rig: SensorR
     if not np.all(in_span):
         # usual at the ends of a log (a scan after the last frame); the count says if it is more
         log.info("%d of %d scans lie outside the estimated trajectory's time span: left out of the DEM", int((~in_span).sum()), len(scan_t_s))
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(ranges_m) & (ranges_m >= laser.range_min_m) & (ranges_m <= laser.range_max_m) & in_span[:, None]
+    valid = valid_beams(ranges_m, rig) & in_span[:, None]
     n_invalid = int((~valid[in_span]).sum())
     if n_invalid:
         log.info("%d laser beams without a usable return (NaN or out of range) left out", n_invalid)
@@ -147,19 +173,9 @@ def laser_returns_world(scan_t_s: np.ndarray, ranges_m: np.ndarray, rig: SensorR
     T_scan, P_scan = poses.at(scan_t_s[in_span])
     # index of each valid return's scan among the scans in span
     span_pos = np.cumsum(in_span) - 1
-    T = T_scan[span_pos[scan_idx]]
-    P = P_scan[span_pos[scan_idx]]
-    T_body_laser = rig.T_body_laser
-    d_body = d_laser @ T_body_laser[:3, :3].T  # (B,3) beam directions in the body frame
-    r = ranges_m[scan_idx, beam_idx]
-    p_body = r[:, None] * d_body[beam_idx] + T_body_laser[:3, 3]
-    R = T[:, :3, :3]
-    xyz = np.einsum("nij,nj->ni", R, p_body) + T[:, :3, 3]
-    a = R[:, 2, :]  # world up in the body frame (rows of R^T e_z)
-    J = np.concatenate([np.cross(p_body, a), a], axis=1)
-    var_pose = np.einsum("ni,nij,nj->n", J, P, J)
-    var_range = (np.einsum("ni,ni->n", a, d_body[beam_idx]) * laser.range_sigma_m) ** 2
-    return GroundReturns(xyz, var_pose + var_range, scan_t_s[scan_idx], np.full(len(r), ReturnSource.LASER_RETURN, dtype=np.uint8))
+    p_body, d_body = returns_in_body(ranges_m[scan_idx, beam_idx], beam_idx, rig)
+    xyz, var = place_returns(p_body, d_body, T_scan[span_pos[scan_idx]], P_scan[span_pos[scan_idx]], laser.range_sigma_m)
+    return GroundReturns(xyz, var, scan_t_s[scan_idx], np.full(len(var), ReturnSource.LASER_RETURN, dtype=np.uint8))
 
 
 def map_point_returns(xyz_m: np.ndarray, covariance: np.ndarray, created_t_s: np.ndarray) -> GroundReturns:
@@ -172,4 +188,4 @@ def map_point_returns(xyz_m: np.ndarray, covariance: np.ndarray, created_t_s: np
     return GroundReturns(xyz, cov[:, 2, 2].copy(), t, np.full(len(t), ReturnSource.MAP_POINT, dtype=np.uint8))
 
 
-__all__ = ["GroundReturns", "PoseTrack", "ReturnSource", "laser_returns_world", "map_point_returns"]
+__all__ = ["GroundReturns", "PoseTrack", "ReturnSource", "laser_returns_world", "map_point_returns", "place_returns", "returns_in_body", "valid_beams"]
