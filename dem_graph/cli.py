@@ -135,12 +135,15 @@ def _pop_dataset_options(kwargs: dict) -> dict:
 @click.option("--max-points", type=int, default=None, help="Cap n on live points.")
 @click.option("--no-odometry", is_flag=True, help="Ignore the dataset's odometry (constant-velocity model).")
 @click.option("--max-frames", type=int, default=None, help="Stop after this many camera frames.")
+@click.option("--viewer", is_flag=True, help="Show the run live in rerun (pip install 'dem-graph[viewer]'): image and tracked points, live local map, trajectory.")
+@click.option("--record", "record_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Save what --viewer shows to this rerun recording (.rrd), without a screen.")
 @_dataset_options
 @_friendly_errors
-def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_dir, config_path, max_points, no_odometry, max_frames, **kwargs) -> None:
+def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_dir, config_path, max_points, no_odometry, max_frames, viewer, record_path, **kwargs) -> None:
     """Run an estimator over a dataset (folder, KITTI or ROS bag); write trajectory.tum, points.ply, metrics.json, config.yaml
     (isam2 also trajectory_smoothed.tum; isam2-batch also trajectory_online.tum)."""
     from dem_graph.pipeline.config import RunOverrides
+    from dem_graph.pipeline.live_view import ViewerOptions
     from dem_graph.pipeline.metrics import summary_lines
     from dem_graph.pipeline.run import run_dataset
 
@@ -150,7 +153,8 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_
         estimator=estimator, max_frames=max_frames, max_points=max_points, no_odometry=no_odometry, lag_s=lag_s,
         keyframe_every=keyframe_every, graph_process=graph_process, realtime=realtime,
     )
-    result = run_dataset(dataset, overrides, config_path, out_dir, _dataset_options_of(options), fmt)
+    shown = ViewerOptions(spawn=viewer, record_path=record_path) if viewer or record_path else None
+    result = run_dataset(dataset, overrides, config_path, out_dir, _dataset_options_of(options), fmt, viewer=shown)
     for line in summary_lines(result.metrics):
         click.echo(line)
     click.echo(f"run folder: {out_dir} ({', '.join(p.name for p in result.paths.values())})")

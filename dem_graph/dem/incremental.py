@@ -25,8 +25,9 @@ keeps them. What the map holds is always exactly the weighted mean of its kept m
 batch fusion of them with the gate off), which the tests check to 1e-9.
 
 **Memory.** Cells live in square tiles of ``tile_cells`` cells a side, made where a measurement
-first lands: the grid follows the vehicle without ever being copied, and its memory grows with the
-area mapped (48 bytes a cell), not with time. Every tile is part of the global map, which
+first lands (kept one after the other in one array that grows by half when full): the grid
+follows the vehicle, and its memory grows with the area mapped (48 bytes a cell), not with time
+or with the number of measurements. Every tile is part of the global map, which
 :meth:`IncrementalDem.to_dem` turns into a :class:`~dem_graph.dem.layers.Dem` at any time.
 
 ``last_update_s`` is the time of the latest measurement a cell took; a removal does not take it back.
@@ -80,50 +81,58 @@ class IncrementalDem:
         self.resolution_m = self.config.resolution_m
         self.tile_cells = int(tile_cells)
         self.gate_min_count = int(gate_min_count)
-        self._tiles: dict[tuple[int, int], np.ndarray] = {}  # (tx, ty) -> (6, tile_cells**2) float64: _SUMS
+        self._tile_row: dict[tuple[int, int], int] = {}  # (tx, ty) -> the tile's block in the store
+        self._store = np.zeros((len(_SUMS), 0))  # (6, tiles * tile_cells**2): _SUMS, tile after tile
         self.n_kept = 0  # measurements in the sums now
         self.n_rejected = 0  # measurements held as outliers now
 
     # --- cells and tiles ---------------------------------------------------------------------
     @property
     def n_tiles(self) -> int:
-        return len(self._tiles)
+        return len(self._tile_row)
 
     @property
     def nbytes(self) -> int:
-        return sum(t.nbytes for t in self._tiles.values())
+        return self.n_tiles * len(_SUMS) * self.tile_cells**2 * 8
+
+    @property
+    def _tiles(self) -> dict[tuple[int, int], np.ndarray]:
+        """Each tile's sums (6, tile_cells**2), by (tx, ty) (views into the store)."""
+        size = self.tile_cells**2
+        return {key: self._store[:, row * size : (row + 1) * size] for key, row in self._tile_row.items()}
 
     def cell_of(self, x_m: np.ndarray, y_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global integer cell (ix, iy) of world points."""
         r = self.resolution_m
         return np.floor(np.asarray(x_m, dtype=float) / r).astype(np.int64), np.floor(np.asarray(y_m, dtype=float) / r).astype(np.int64)
 
-    def _groups(self, ix: np.ndarray, iy: np.ndarray):
-        """(tile key, index of the cells in it, their slot in the tile) for each tile the cells touch."""
+    def _flat(self, ix: np.ndarray, iy: np.ndarray, create: bool) -> np.ndarray:
+        """Each cell's column in the store (-1 for a cell of a tile not made, unless ``create``)."""
         T = self.tile_cells
         tx, ty = ix // T, iy // T
         slot = (iy - ty * T) * T + (ix - tx * T)
-        if len(ix) == 0:
-            return
         key = tx * (1 << 32) + (ty & 0xFFFFFFFF)
-        if np.all(key == key[0]):  # the usual case: one scan in one tile
-            yield (int(tx[0]), int(ty[0])), slice(None), slot
-            return
-        order = np.argsort(key, kind="stable")
-        k = key[order]
-        starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
-        ends = np.r_[starts[1:], len(k)]
-        for s, e in zip(starts, ends, strict=True):
-            idx = order[s:e]
-            yield (int(tx[idx[0]]), int(ty[idx[0]])), idx, slot[idx]
+        keys, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+        rows = np.empty(len(keys), dtype=np.int64)
+        for j, i in enumerate(first):
+            tile = (int(tx[i]), int(ty[i]))
+            row = self._tile_row.get(tile)
+            if row is None:
+                row = self._new_tile(tile) if create else -1
+            rows[j] = row
+        row = rows[inverse.reshape(-1)]
+        return np.where(row >= 0, row * T * T + slot, -1)
 
-    def _tile(self, key: tuple[int, int], create: bool) -> np.ndarray | None:
-        tile = self._tiles.get(key)
-        if tile is None and create:
-            tile = np.zeros((len(_SUMS), self.tile_cells**2))
-            tile[5] = -np.inf
-            self._tiles[key] = tile
-        return tile
+    def _new_tile(self, tile: tuple[int, int]) -> int:
+        size = self.tile_cells**2
+        row = len(self._tile_row)
+        if (row + 1) * size > self._store.shape[1]:  # grow by half again: amortised, and little spare memory
+            grown = np.zeros((len(_SUMS), max(4, int(1.5 * (row + 1))) * size))
+            grown[5] = -np.inf
+            grown[:, : self._store.shape[1]] = self._store
+            self._store = grown
+        self._tile_row[tile] = row
+        return row
 
     # --- adding and removing -----------------------------------------------------------------
     def add(self, returns: GroundReturns) -> Placed:
@@ -133,12 +142,10 @@ class IncrementalDem:
         xyz = np.asarray(returns.xyz_m, dtype=float).reshape(-1, 3)
         var = np.asarray(returns.var_z_m2, dtype=float)
         t = np.asarray(returns.t_s, dtype=float)
+        laser = np.asarray(returns.source) == ReturnSource.LASER_RETURN
         ok = np.isfinite(xyz[:, 0] + xyz[:, 1] + xyz[:, 2] + var + t) & (var >= 0)
         if not np.all(ok):
-            xyz, var, t = xyz[ok], var[ok], t[ok]
-            laser = np.asarray(returns.source)[ok] == ReturnSource.LASER_RETURN
-        else:
-            laser = np.asarray(returns.source) == ReturnSource.LASER_RETURN
+            xyz, var, t, laser = xyz[ok], var[ok], t[ok], laser[ok]
         if len(xyz) == 0:
             return Placed.empty()
         c = self.config
@@ -147,53 +154,46 @@ class IncrementalDem:
         z = xyz[:, 2]
         wz = w * z
         ix, iy = self.cell_of(xyz[:, 0], xyz[:, 1])
-        kept = np.ones(len(z), dtype=bool)
-        size = self.tile_cells**2
-        for key, idx, slot in self._groups(ix, iy):
-            tile = self._tile(key, create=True)
-            W, N = tile[0, slot], tile[2, slot]
-            gated = N >= self.gate_min_count
-            if np.any(gated):
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    h = tile[1, slot] / W
-                    d = z[idx] - h
-                    ok_gate = d * d <= c.gate_sigma**2 * (var[idx] + 1.0 / W + c.gate_floor_m**2)
-                k = ~gated | ok_gate
-                kept[idx] = k
-            else:
-                k = np.ones(len(slot), dtype=bool)
-            kw = k.astype(float)
-            tile[0] += np.bincount(slot, weights=w[idx] * kw, minlength=size)
-            tile[1] += np.bincount(slot, weights=wz[idx] * kw, minlength=size)
-            tile[2] += np.bincount(slot, weights=kw, minlength=size)
-            tile[3] += np.bincount(slot, weights=kw * laser[idx], minlength=size)
-            tile[4] += np.bincount(slot, weights=1.0 - kw, minlength=size)
-            np.maximum.at(tile[5], slot[k], t[idx][k])
+        flat = self._flat(ix, iy, create=True)
+        store = self._store
+        W, N = store[0, flat], store[2, flat]
+        kept = N < self.gate_min_count
+        if not np.all(kept):
+            with np.errstate(invalid="ignore", divide="ignore"):
+                d = z - store[1, flat] / W
+                kept |= d * d <= c.gate_sigma**2 * (var + 1.0 / W + c.gate_floor_m**2)
+        self._accumulate(flat, w, wz, laser, kept, sign=1.0)
+        np.maximum.at(store[5], flat[kept], t[kept])
         n_kept = int(kept.sum())
         self.n_kept += n_kept
         self.n_rejected += len(kept) - n_kept
         return Placed(ix, iy, w, wz, laser, kept)
 
+    def _accumulate(self, flat: np.ndarray, w: np.ndarray, wz: np.ndarray, laser: np.ndarray, kept: np.ndarray, sign: float) -> np.ndarray:
+        """Add (``sign`` 1) or subtract (-1) the measurements' terms to their cells; returns the cells touched."""
+        cells, inverse = np.unique(flat, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        m = len(cells)
+        kw = kept.astype(float)
+        store = self._store
+        store[0, cells] += sign * np.bincount(inverse, weights=w * kw, minlength=m)
+        store[1, cells] += sign * np.bincount(inverse, weights=wz * kw, minlength=m)
+        store[2, cells] += sign * np.bincount(inverse, weights=kw, minlength=m)
+        store[3, cells] += sign * np.bincount(inverse, weights=kw * laser, minlength=m)
+        store[4, cells] += sign * np.bincount(inverse, weights=1.0 - kw, minlength=m)
+        return cells
+
     def remove(self, placed: Placed) -> None:
         """Take back a batch :meth:`add` placed (exactly what it added)."""
         if len(placed) == 0:
             return
-        size = self.tile_cells**2
-        for key, idx, slot in self._groups(placed.ix, placed.iy):
-            tile = self._tile(key, create=False)
-            if tile is None:
-                raise DemGraphError(f"removing measurements from tile {key}, which holds none")
-            kw = placed.kept[idx].astype(float)
-            tile[0] -= np.bincount(slot, weights=placed.w[idx] * kw, minlength=size)
-            tile[1] -= np.bincount(slot, weights=placed.wz[idx] * kw, minlength=size)
-            tile[2] -= np.bincount(slot, weights=kw, minlength=size)
-            tile[3] -= np.bincount(slot, weights=kw * placed.laser[idx], minlength=size)
-            tile[4] -= np.bincount(slot, weights=1.0 - kw, minlength=size)
-            emptied = tile[2] <= 0.5  # counts are whole numbers: no measurement left, whatever the rounding
-            tile[0][emptied] = 0.0
-            tile[1][emptied] = 0.0
-            tile[2][emptied] = 0.0
-            tile[3][emptied] = 0.0
+        flat = self._flat(placed.ix, placed.iy, create=False)
+        if np.any(flat < 0):
+            raise DemGraphError("removing measurements from a tile that holds none")
+        cells = self._accumulate(flat, placed.w, placed.wz, placed.laser, placed.kept, sign=-1.0)
+        store = self._store
+        emptied = cells[store[2, cells] <= 0.5]  # counts are whole numbers: no measurement left, whatever the rounding
+        store[:4, emptied] = 0.0
         n_kept = int(placed.kept.sum())
         self.n_kept -= n_kept
         self.n_rejected -= len(placed) - n_kept
@@ -222,10 +222,10 @@ class IncrementalDem:
         ix, iy = self.cell_of(x.ravel(), np.asarray(y_m, dtype=float).ravel())
         sums = np.zeros((len(_SUMS), len(ix)))
         sums[5] = -np.inf
-        for key, idx, slot in self._groups(ix, iy):
-            tile = self._tiles.get(key)
-            if tile is not None:
-                sums[:, idx] = tile[:, slot]
+        if len(ix) and self.n_tiles:
+            flat = self._flat(ix, iy, create=False)
+            known = flat >= 0
+            sums[:, known] = self._store[:, flat[known]]
         return {k: v.reshape(shape) for k, v in self._layers_from_sums(sums).items()}
 
     def covering_geometry(self, margin_cells: int = 0) -> GridGeometry:

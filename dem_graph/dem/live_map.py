@@ -28,7 +28,7 @@ import numpy as np
 from dem_graph.dem.fusion import FusionConfig
 from dem_graph.dem.incremental import IncrementalDem, Placed
 from dem_graph.dem.layers import Dem
-from dem_graph.dem.returns import GroundReturns, ReturnSource, place_returns, returns_in_body, valid_beams
+from dem_graph.dem.returns import GroundReturns, ReturnSource, place_returns, valid_beams
 from dem_graph.dem.traversability import add_traversability
 from dem_graph.dem.views import local_frame
 from dem_graph.errors import DemGraphError
@@ -47,6 +47,14 @@ class _LoggedScan:
     d_body: np.ndarray  # (N,3) their beam directions
     T_world_body: np.ndarray  # the pose they are placed with now
     placed: Placed
+
+
+def _concatenate(parts: list[Placed]) -> Placed:
+    return Placed(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("ix", "iy", "w", "wz", "laser", "kept")))
+
+
+def _slice(placed: Placed, start: int, end: int) -> Placed:
+    return Placed(*(getattr(placed, f)[start:end] for f in ("ix", "iy", "w", "wz", "laser", "kept")))
 
 
 def pose_moved(T_old: np.ndarray, T_new: np.ndarray, tolerance_m: float, tolerance_rad: float) -> np.ndarray:
@@ -77,9 +85,10 @@ class LiveMap:
         self.tolerance_m = float(tolerance_m)
         self.tolerance_rad = float(tolerance_rad)
         self._log: deque[_LoggedScan] = deque()
-        self.n_beams = len(rig.laser.beam_directions())
+        self._d_body = rig.laser.beam_directions() @ rig.T_body_laser[:3, :3].T  # (beams, 3), once
+        self.n_beams = len(self._d_body)
         self.t_latest_s = -np.inf  # the latest measurement's time
-        self.counters = {"scans": 0, "returns": 0, "returns_moved": 0, "scans_moved": 0, "revisions": 0, "map_points": 0, "scans_skipped": 0}
+        self.counters = {"scans": 0, "returns": 0, "returns_moved": 0, "scans_moved": 0, "revisions": 0, "map_points": 0}
 
     # --- measurements ------------------------------------------------------------------------
     def add_scan(self, t_s: float, ranges_m: np.ndarray, T_world_body: np.ndarray, covariance: np.ndarray) -> int:
@@ -90,7 +99,8 @@ class LiveMap:
         if len(r) != self.n_beams:
             raise DemGraphError(f"laser scan at {t_s:.6f} s has {len(r)} beams; the rig's laser has {self.n_beams}")
         beams = np.flatnonzero(valid_beams(r, self.rig))
-        p_body, d_body = returns_in_body(r[beams], beams, self.rig)
+        d_body = self._d_body[beams]
+        p_body = r[beams, None] * d_body + self.rig.T_body_laser[:3, 3]
         T = np.asarray(T_world_body, dtype=float)
         placed = self._place(t_s, p_body, d_body, T, np.asarray(covariance, dtype=float))
         self._log.append(_LoggedScan(float(t_s), p_body, d_body, T.copy(), placed))
@@ -103,7 +113,7 @@ class LiveMap:
         n = len(p_body)
         if n == 0:
             return Placed.empty()
-        xyz, var = place_returns(p_body, d_body, np.broadcast_to(T, (n, 4, 4)), np.broadcast_to(P, (n, 6, 6)), self.rig.laser.range_sigma_m)
+        xyz, var = place_returns(p_body, d_body, T[None], P[None], self.rig.laser.range_sigma_m)
         return self.grid.add(GroundReturns(xyz, var, np.full(n, t_s), np.full(n, ReturnSource.LASER_RETURN, dtype=np.uint8)))
 
     def add_points(self, xyz_m: np.ndarray, var_z_m2: np.ndarray, t_s: np.ndarray) -> Placed:
@@ -122,21 +132,38 @@ class LiveMap:
 
     def revise(self, pose_at: PoseLookup) -> int:
         """Ask ``pose_at`` for the pose of every scan in the revision log; move the returns of the
-        scans whose pose moved beyond the tolerance. Returns the number of returns moved."""
+        scans whose pose moved beyond the tolerance, out of the map and back in as one batch (gated
+        together). Returns the number of returns moved."""
         if not self._log:
             return 0
         scans = list(self._log)
         T_new, P_new = pose_at(np.array([s.t_s for s in scans]))
         T_old = np.array([s.T_world_body for s in scans])
-        moved = np.flatnonzero(pose_moved(T_old, T_new, self.tolerance_m, self.tolerance_rad))
-        n = 0
-        for i in moved:
-            s = scans[i]
-            self.grid.remove(s.placed)
-            s.placed = self._place(s.t_s, s.p_body, s.d_body, T_new[i], P_new[i])
-            s.T_world_body = np.array(T_new[i], dtype=float)
-            n += len(s.placed)
+        index = np.flatnonzero(pose_moved(T_old, T_new, self.tolerance_m, self.tolerance_rad))
         self.counters["revisions"] += 1
+        if len(index) == 0:
+            return 0
+        moved = [scans[i] for i in index]
+        self.grid.remove(_concatenate([s.placed for s in moved]))
+        sizes = np.array([len(s.p_body) for s in moved])
+        scan_of = np.repeat(np.arange(len(moved)), sizes)
+        T = T_new[index][scan_of]
+        P = P_new[index][scan_of]
+        p_body = np.concatenate([s.p_body for s in moved])
+        d_body = np.concatenate([s.d_body for s in moved])
+        xyz, var = place_returns(p_body, d_body, T, P, self.rig.laser.range_sigma_m)
+        t = np.repeat([s.t_s for s in moved], sizes)
+        ok = np.all(np.isfinite(xyz), axis=1) & np.isfinite(var)
+        if not np.all(ok):  # a pose with NaN in it: those scans leave the map rather than land anywhere
+            log.warning("revised poses with NaN or infinite values: %d laser returns taken out of the live map", int((~ok).sum()))
+            var = np.where(ok, var, np.nan)
+        placed = self.grid.add(GroundReturns(xyz, var, t, np.full(len(t), ReturnSource.LASER_RETURN, dtype=np.uint8)))
+        ends = np.cumsum(np.bincount(scan_of[ok], minlength=len(moved)))
+        starts = ends - np.bincount(scan_of[ok], minlength=len(moved))
+        for j, s in enumerate(moved):
+            s.placed = _slice(placed, starts[j], ends[j])
+            s.T_world_body = np.array(T_new[index[j]], dtype=float)
+        n = len(placed)
         self.counters["scans_moved"] += len(moved)
         self.counters["returns_moved"] += n
         return n

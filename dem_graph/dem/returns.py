@@ -135,7 +135,15 @@ def returns_in_body(ranges_m: np.ndarray, beam_idx: np.ndarray, rig: SensorRig) 
 
 def place_returns(p_body: np.ndarray, d_body: np.ndarray, T_world_body: np.ndarray, P: np.ndarray, range_sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
     """World positions (N,3) and height variances (N,) of body-frame returns, each placed with its
-    pose (N,4,4) and pose covariance (N,6,6) (the module's equations)."""
+    pose (N,4,4) and pose covariance (N,6,6), or all with one (1,4,4), (1,6,6) (the module's equations)."""
+    if len(T_world_body) == 1:  # one scan's returns: one pose for all
+        R, t = T_world_body[0, :3, :3], T_world_body[0, :3, 3]
+        xyz = p_body @ R.T + t
+        a = R[2, :]
+        J = np.concatenate([np.cross(p_body, a), np.broadcast_to(a, p_body.shape)], axis=1)
+        var_pose = np.einsum("ni,ij,nj->n", J, P[0], J)
+        var_range = ((d_body @ a) * range_sigma_m) ** 2
+        return xyz, var_pose + var_range
     R = T_world_body[:, :3, :3]
     xyz = np.einsum("nij,nj->ni", R, p_body) + T_world_body[:, :3, 3]
     a = R[:, 2, :]  # world up in the body frame (rows of R^T e_z)

@@ -31,18 +31,15 @@ def traversability(elevation: np.ndarray, resolution_m: float, window: int = 3) 
     rows, cols = np.indices(z.shape, dtype=float)
     # plane z = c0 + gx * x + gy * y, x east (columns), y north (rows upward), metres; the sums are
     # centred on each window's means before solving
-
-    def box(a):
-        return ndimage.uniform_filter(np.where(known, a, 0.0), size=window, mode="constant") * window * window
-
     x = cols * resolution_m
     y = -rows * resolution_m
     z0 = float(np.median(z[known])) if np.any(known) else 0.0
     zz = np.where(known, z - z0, 0.0)  # an offset keeps the sums of squares well conditioned
-    n = box(np.ones_like(z))
-    sx, sy = box(x), box(y)
-    sxx, syy, sxy = box(x * x), box(y * y), box(x * y)
-    sz, sxz, syz, szz = box(zz), box(x * zz), box(y * zz), box(zz * zz)
+    # every window sum in one filter pass over the stacked terms (unknown cells count 0)
+    terms = np.stack([np.ones_like(z), x, y, x * x, y * y, x * y, zz, x * zz, y * zz, zz * zz])
+    terms *= known
+    sums = ndimage.uniform_filter(terms, size=(1, window, window), mode="constant") * (window * window)
+    n, sx, sy, sxx, syy, sxy, sz, sxz, syz, szz = sums
     with np.errstate(invalid="ignore", divide="ignore"):
         mx, my, mz = sx / n, sy / n, sz / n
         cxx = sxx - n * mx * mx

@@ -142,6 +142,37 @@ class FrameDrivenEstimator(Estimator):
         self._motion = FrameMotion(motion, has_odometry, t_start_s)
         self._scans = ScanQueue()
         self._pending_frame: CameraFrame | None = None
+        self._frames: list[FrameRecord] = []
+
+    # --- what the live map reads after each frame --------------------------------------------
+    @property
+    def frames_done(self) -> int:
+        """Frames processed so far (a frame held for its odometry is not yet one)."""
+        return len(self._frames)
+
+    @property
+    def last_frame(self) -> FrameRecord | None:
+        return self._frames[-1] if self._frames else None
+
+    def recent_poses(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The last ``n`` frames' times (n,), best poses known now (n,4,4) and covariances (n,6,6):
+        here the per-frame estimates; a smoother gives its revised ones."""
+        frames = self._frames[-n:] if n > 0 else []
+        return (
+            np.array([f.t_s for f in frames]),
+            np.array([f.T_world_body for f in frames]).reshape(-1, 4, 4),
+            np.array([f.pose_covariance for f in frames]).reshape(-1, 6, 6),
+        )
+
+    def live_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """The points tracked now: ids (n,) and world positions (n,3) (a viewer's)."""
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+
+    def archived_points_since(self, start: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """The map points that left the estimator since the ``start``-th one did: world positions
+        (m,3), 3x3 covariances (m,3,3) and creation times (m,), and the count to ask from next
+        time. Points whose estimate is not known yet are left out."""
+        return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), start
 
     @property
     def t_s(self) -> float:

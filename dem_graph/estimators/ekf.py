@@ -185,6 +185,12 @@ class EkfSlam(FrameDrivenEstimator):
             st.add_points(np.array([p.point_id for p in new]), np.array([p.p_body for p in new]), np.array([p.Sigma_body for p in new]))
 
     # --- results -----------------------------------------------------------------------------
+    def archived_points_since(self, start: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        return self._archived.since(start)
+
+    def live_points(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.asarray(self.state.point_ids, dtype=np.int64), np.asarray(self.state.points_xyz, dtype=float).reshape(-1, 3)
+
     def result(self) -> EstimatorResult:
         """Frames so far and every point: archived ones plus the live ones at their current estimate."""
         st = self.state

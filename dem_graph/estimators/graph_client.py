@@ -274,10 +274,11 @@ class GraphClient:
         self.points.update(points)
         self._graph.close()
 
-    def smoothed_poses(self) -> np.ndarray:
-        """Every frame's pose from the latest keyframe estimates (each frame rides on the keyframe before it)."""
+    def smoothed_poses(self, last: int | None = None) -> np.ndarray:
+        """Every frame's pose (or the ``last`` frames') from the latest keyframe estimates (each frame rides on the keyframe before it)."""
         poses = self.poses
-        return np.array([poses[k] @ T_rel for k, T_rel in self._frame_anchor]).reshape(-1, 4, 4)
+        anchors = self._frame_anchor if last is None else (self._frame_anchor[-last:] if last > 0 else [])
+        return np.array([poses[k] @ T_rel for k, T_rel in anchors]).reshape(-1, 4, 4)
 
     def count(self, counters: Counter) -> None:
         """The keyframes made and how late the graph's results came (median and most keyframes)."""

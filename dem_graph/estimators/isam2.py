@@ -255,6 +255,20 @@ class Isam2Slam(FrameDrivenEstimator):
         self.live.keep(keep)
         return uv
 
+    # --- what the live map reads -------------------------------------------------------------
+    def recent_poses(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The last ``n`` frames with the poses the smoother's latest keyframe estimates give them."""
+        t, _, P = super().recent_poses(n)
+        return t, self._client.smoothed_poses(last=len(t)), P
+
+    def live_points(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.live.ids.copy(), self.live.X.copy()
+
+    def archived_points_since(self, start: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """The points that left, each at the graph's latest estimate of its landmark (left out while it has none)."""
+        pts, landmark_of = self._client.points, self._client.landmarks.of_point
+        return self._archived.since(start, lambda pid: pts.get(landmark_of.get(pid, -1)))
+
     # --- results -----------------------------------------------------------------------------
     def result(self) -> EstimatorResult:
         pts, live, landmark_of = self._client.points, self.live, self._client.landmarks.of_point

@@ -32,6 +32,21 @@ class PointArchive:
         track = self._frontend.drop(point_id, reason)
         self._points.append((track.point_id, track.kind, None if xyz is None else np.array(xyz, dtype=float), covariance, track.n_tracked, track.created_t_s))
 
+    def since(self, start: int, xyz_of: Callable[[int], np.ndarray | None] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """The points archived from the ``start``-th on: world positions (m,3), covariances (m,3,3)
+        and creation times (m,), and the count so far. A point kept without a position takes
+        ``xyz_of(point_id)``; without one (None) it is left out."""
+        xyz, cov, t = [], [], []
+        for pid, _, X, covariance, _, created_t_s in self._points[start:]:
+            X = X if X is not None else (xyz_of(pid) if xyz_of is not None else None)
+            if X is None:
+                continue
+            xyz.append(X)
+            cov.append(covariance)
+            t.append(created_t_s)
+        n = len(xyz)
+        return np.asarray(xyz, dtype=float).reshape(n, 3), np.asarray(cov, dtype=float).reshape(n, 3, 3), np.asarray(t, dtype=float), len(self._points)
+
     def drop_points(
         self, point_ids: np.ndarray, X_world: np.ndarray, T_world_body: np.ndarray, estimate: Callable[[int], tuple[np.ndarray, np.ndarray | None]]
     ) -> tuple[np.ndarray, np.ndarray]:

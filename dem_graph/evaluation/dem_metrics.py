@@ -170,6 +170,26 @@ def _truth_in_local(truth: ElevationGrid, T_world_local: np.ndarray, x_local: np
         return _truth_at(truth, xw.ravel(), yw.ravel()).reshape(x_local.shape) - T[2, 3]
 
 
+def local_dem_errors(dem: Dem, truth: ElevationGrid, truth_trajectory: Trajectory | None = None) -> tuple[float, float, float, float, float]:
+    """One local DEM (``dem.meta``: ``t_s``, ``T_world_local``) against the truth: mean and std of
+    its height error with the cells where the estimate puts them, the same in the true local frame
+    (NaN without the truth's pose then), and its covered fraction (see :class:`LocalErrorSeries`)."""
+    t = float(dem.meta["t_s"])
+    xl, yl = dem.geometry.cell_centers_xy()
+    err = height_errors(dem.elevation, _truth_in_local(truth, dem.meta["T_world_local"], xl, yl))
+    rel_mean = rel_std = float("nan")
+    if truth_trajectory is not None and truth_trajectory.t_s[0] <= t <= truth_trajectory.t_s[-1]:
+        rel = height_errors(dem.elevation, _truth_in_local(truth, local_frame(truth_trajectory.at(t)), xl, yl))
+        rel_mean, rel_std = rel.mean_m, rel.std_m
+    return (err.mean_m, err.std_m, rel_mean, rel_std, float(dem.covered.mean()))
+
+
+def local_error_series_from_rows(times_s, rows) -> LocalErrorSeries:
+    """A series from :func:`local_dem_errors`' rows, one per time."""
+    a = np.array(rows, dtype=float).reshape(-1, 5)
+    return LocalErrorSeries(np.asarray(times_s, dtype=float), a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4])
+
+
 def local_error_series(
     returns: GroundReturns,
     poses: PoseTrack,
@@ -181,20 +201,14 @@ def local_error_series(
     history_s: float = 10.0,
     truth_trajectory: Trajectory | None = None,
 ) -> LocalErrorSeries:
-    """At each time, the local DEM over the window against the truth (see :class:`LocalErrorSeries`)."""
+    """At each time, the local DEM over the window against the truth, made in hindsight from ``returns``
+    (see :class:`LocalErrorSeries`)."""
     times_s = np.asarray(times_s, dtype=float)
     rows = []
     for t in progress(times_s, desc="local DEM errors", unit="frame"):
         dem = local_dem(returns, poses, float(t), x_range_m, half_width_m, config, history_s=history_s, traversability_window=None)
-        xl, yl = dem.geometry.cell_centers_xy()
-        err = height_errors(dem.elevation, _truth_in_local(truth, dem.meta["T_world_local"], xl, yl))
-        rel_mean = rel_std = float("nan")
-        if truth_trajectory is not None and truth_trajectory.t_s[0] <= t <= truth_trajectory.t_s[-1]:
-            rel = height_errors(dem.elevation, _truth_in_local(truth, local_frame(truth_trajectory.at(float(t))), xl, yl))
-            rel_mean, rel_std = rel.mean_m, rel.std_m
-        rows.append((err.mean_m, err.std_m, rel_mean, rel_std, float(dem.covered.mean())))
-    a = np.array(rows, dtype=float).reshape(-1, 5)
-    return LocalErrorSeries(times_s, a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4])
+        rows.append(local_dem_errors(dem, truth, truth_trajectory))
+    return local_error_series_from_rows(times_s, rows)
 
 
-__all__ = ["CorridorCoverage", "HeightErrors", "LocalErrorConfig", "LocalErrorSeries", "LocalErrorSummary", "corridor_coverage", "corridor_mask", "height_errors", "local_error_series", "truth_at_cells"]
+__all__ = ["CorridorCoverage", "HeightErrors", "LocalErrorConfig", "LocalErrorSeries", "LocalErrorSummary", "corridor_coverage", "corridor_mask", "height_errors", "local_dem_errors", "local_error_series", "local_error_series_from_rows", "truth_at_cells"]

@@ -104,12 +104,41 @@ class NewPoint:
 
 
 @dataclass
+class TrackedView:
+    """What the front end searched in one frame, for a viewer (the paper's Fig. 6): per point its
+    kind, the predicted pixel, the half size of the region searched (pixels) and the match (NaN
+    when none)."""
+
+    t_s: float
+    kind: list[int] = field(default_factory=list)
+    uv_pred_px: list[tuple[float, float]] = field(default_factory=list)
+    search_half_size_px: list[tuple[int, int]] = field(default_factory=list)
+    uv_px: list[tuple[float, float]] = field(default_factory=list)
+
+    def add(self, kind: int, uv_pred, half_size, uv) -> None:
+        self.kind.append(int(kind))
+        self.uv_pred_px.append((float(uv_pred[0]), float(uv_pred[1])))
+        self.search_half_size_px.append((int(half_size[0]), int(half_size[1])))
+        self.uv_px.append((float("nan"), float("nan")) if uv is None else (float(uv[0]), float(uv[1])))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        n = len(self.kind)
+        return {
+            "kind": np.asarray(self.kind, dtype=np.uint8),
+            "uv_pred_px": np.asarray(self.uv_pred_px, dtype=float).reshape(n, 2),
+            "search_half_size_px": np.asarray(self.search_half_size_px, dtype=float).reshape(n, 2),
+            "uv_px": np.asarray(self.uv_px, dtype=float).reshape(n, 2),
+        }
+
+
+@dataclass
 class FrontEnd:
     config: FrontendConfig
     rig: SensorRig
     tracker: PatchTracker = field(init=False)
     tracks: dict[int, PointTrack] = field(default_factory=dict)
     counters: Counter = field(default_factory=Counter)
+    last_view: TrackedView | None = None  # the latest frame's searches (a viewer's)
     _next_id: int = 0
 
     def __post_init__(self):
@@ -163,6 +192,7 @@ class FrontEnd:
         camera pose estimate ``T_world_cam``). For the point-by-point PTPM; :meth:`track_many`
         tracks a frame's points at once, with the same outcome."""
         result = self.tracker.track(image, template, uv_pred, S_px2=S_px2, half_size_px=half_size_px)
+        self._view(t_s).add(self.tracks[point_id].kind, uv_pred, result.search_half_size_px, result.uv_px)
         self._record(image, point_id, result.status, result.uv_px, t_s, T_world_cam)
         return result
 
@@ -172,9 +202,17 @@ class FrontEnd:
         :meth:`PatchTracker.track_many` gives it. Counters, misses and patch refreshes follow the
         points' order, as with one :meth:`track` call per point."""
         batch = self.tracker.track_many(image, templates, uv_pred, S_px2=S_px2, half_size_px=half_size_px)
-        for point_id, status, uv in zip(np.asarray(point_ids).tolist(), batch.statuses(), batch.uv_px):
+        view = self._view(t_s)
+        for j, (point_id, status, uv) in enumerate(zip(np.asarray(point_ids).tolist(), batch.statuses(), batch.uv_px)):
+            view.add(self.tracks[point_id].kind, uv_pred[j], batch.search_half_size_px[j], uv if status is TrackStatus.OK else None)
             self._record(image, point_id, status, uv, t_s, T_world_cam)
         return batch
+
+    def _view(self, t_s: float) -> TrackedView:
+        """The record of the frame at ``t_s``'s searches (a new one for a new frame)."""
+        if self.last_view is None or self.last_view.t_s != t_s:
+            self.last_view = TrackedView(float(t_s))
+        return self.last_view
 
     def _record(self, image, point_id: int, status: TrackStatus, uv, t_s: float, T_world_cam) -> None:
         """A track's outcome: counters, misses, and the patch refreshed every ``refresh_patch_every`` matches."""

@@ -45,6 +45,24 @@ class DemConfig(StrictModel):
     local_history_s: float = Field(10.0, gt=0, description="a local DEM fuses the measurements of this many seconds before its time")
 
 
+class LiveMapConfig(StrictModel):
+    """The map built while the run goes (:class:`~dem_graph.pipeline.live.LivePipeline`); its cells
+    and gate are ``dem.fusion``'s."""
+
+    revision_window_s: float = Field(
+        2.0, gt=0, description="scans this recent are moved when their poses are revised; older ones are frozen (bounds the cost of a revision)"
+    )
+    tolerance_m: float = Field(1e-3, ge=0, description="a scan is moved when its pose moved more than this, metres ...")
+    tolerance_rad: float = Field(1e-4, ge=0, description="... or turned more than this, radians")
+    tile_cells: int = Field(32, ge=1, description="cells on a side of one tile of the map (tiles are made where measurements land)")
+    gate_min_count: int = Field(3, ge=1, description="a cell gates new measurements once it holds this many")
+    save_every_n_frames: int = Field(10, ge=0, description="the run folder's live_maps.nc keeps every this many frames' local map (0: none)")
+    save_x_range_m: tuple[float, float] = Field((0.0, 8.0), description="the saved local maps' window ahead of the body origin, metres (from, to)")
+    save_width_m: float = Field(6.0, gt=0, description="the saved local maps' width, metres")
+    camera_silent_s: float = Field(1.0, gt=0, description="warn when no camera frame has come for this long (the map goes on with extrapolated poses)")
+    laser_silent_s: float = Field(2.0, gt=0, description="warn when no laser scan has come for this long (the map stops growing)")
+
+
 class RunConfig(SharedSettings):
     """A run: which estimator, the settings all estimators share (front end, motion model, false
     matches), each estimator's own options, the DEM and the Fig. 8 measure."""
@@ -61,6 +79,7 @@ class RunConfig(SharedSettings):
     blas_threads: int = Field(1, ge=1, description="threads numpy's linear algebra may use while the estimator runs (the matrices are small; README, Benchmarks: one thread against two)")
     dem: DemConfig = Field(default_factory=DemConfig, description="the dense DEM made from the run's poses")
     local_error: LocalErrorConfig = Field(default_factory=LocalErrorConfig, description="the Fig. 8 measure: the local DEM's error ahead of the vehicle (with truth)")
+    live_map: LiveMapConfig = Field(default_factory=LiveMapConfig, description="the map built while the run goes, the one the guidance steers by")
 
 
 @dataclass
@@ -157,4 +176,4 @@ def run_config(sequence: Sequence | None = None, config_file: str | Path | None 
     return config
 
 
-__all__ = ["DemConfig", "ESTIMATORS", "EstimatorName", "RunConfig", "RunOverrides", "merge_settings", "read_config_file", "run_config"]
+__all__ = ["DemConfig", "ESTIMATORS", "EstimatorName", "LiveMapConfig", "RunConfig", "RunOverrides", "merge_settings", "read_config_file", "run_config"]

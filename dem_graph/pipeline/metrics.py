@@ -12,6 +12,7 @@ from dem_graph.estimators.base import EstimatorResult
 from dem_graph.evaluation.results import MetricsModel
 from dem_graph.evaluation.timing import PhaseTiming, frame_timing_summary
 from dem_graph.evaluation.trajectory_metrics import NeesSummary, TrajectoryAccuracy, accuracy_summary, nees_summary, pose_nees
+from dem_graph.pipeline.live_run import LiveMapMetrics
 from dem_graph.pipeline.run_dem import DemFailure, DemMetrics
 
 
@@ -38,7 +39,8 @@ class RunMetrics(MetricsModel):
     trajectory_smoothed: TrajectoryAccuracy | None = None  # isam2: every frame as smoothed at the end of the run
     trajectory_online: TrajectoryAccuracy | None = None  # isam2-batch: its online pass
     pose_nees: NeesSummary | None = None
-    dem: DemMetrics | DemFailure | None = None
+    dem: DemMetrics | DemFailure | None = None  # the DEM from the final poses, in hindsight
+    live_map: LiveMapMetrics | None = None  # the map built while the run went, as the guidance had it
     dataset: str | None = None  # the dataset's path
     dataset_options: dict[str, Any] | None = None  # how it was opened (:meth:`Sequence.open_options`)
 
@@ -95,6 +97,13 @@ def summary_lines(m: RunMetrics) -> list[str]:
             lines.append(line)
     elif isinstance(d, DemFailure):
         lines.append(f"DEM: not made ({d.error})")
+    lm = m.live_map
+    if lm is not None:
+        line = f"live map: {lm.covered_cells} cells, update median {lm.update_median_ms:.2f} ms, p95 {lm.update_p95_ms:.2f} ms; {lm.returns_moved} of {lm.returns} returns moved by revisions"
+        lw = lm.local_window
+        if lw is not None and lw.frames_with_data:
+            line += f"; Fig. 8 as the guidance had it: mean error {100 * lw.mean_of_mean_m:.1f} cm, std {100 * lw.mean_of_std_m:.1f} cm"
+        lines.append(line)
     return lines
 
 

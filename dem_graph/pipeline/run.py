@@ -23,10 +23,11 @@ from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
 from dem_graph.datasets.open import DatasetOptions, open_dataset
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators.base import Estimator
-from dem_graph.estimators.ekf import EkfConfig, EkfSlam
-from dem_graph.estimators.isam2 import Isam2Config, Isam2Slam
-from dem_graph.estimators.settings import SharedSettings
-from dem_graph.pipeline.config import ESTIMATORS, RunConfig, RunOverrides, run_config
+from dem_graph.pipeline.config import RunConfig, RunOverrides, run_config
+from dem_graph.pipeline.live import LivePipeline
+from dem_graph.pipeline.live import make_estimator as make_estimator_for
+from dem_graph.pipeline.live_run import LiveRun
+from dem_graph.pipeline.live_view import ViewerListener, ViewerOptions
 from dem_graph.pipeline.metrics import compute_metrics
 from dem_graph.pipeline.result import RunResult
 from dem_graph.pipeline.run_dem import DemFailure, RunDem, dem_from_result, make_run_dem
@@ -37,16 +38,11 @@ log = logging.getLogger(__name__)
 
 
 def make_estimator(sequence: Sequence, config: RunConfig) -> Estimator:
-    shared = {k: getattr(config, k) for k in SharedSettings.model_fields}
-    args = (sequence.rig, sequence.T_world_body_initial, sequence.t_start_s, sequence.has_odometry)
-    if config.estimator in ("gm", "ptpm"):
-        return EkfSlam(*args, EkfConfig(**shared, **dict(config.ekf), variant=config.estimator))
-    if config.estimator in ("isam2", "isam2-batch"):
-        return Isam2Slam(*args, Isam2Config(**shared, **dict(config.isam2), batch=config.estimator == "isam2-batch"))
-    raise DemGraphError(f"unknown estimator '{config.estimator}'; choose one of {', '.join(ESTIMATORS)}")
+    """``config``'s estimator for ``sequence`` (its rig, start and odometry)."""
+    return make_estimator_for(sequence.rig, sequence.T_world_body_initial, sequence.t_start_s, sequence.has_odometry, config)
 
 
-def feed(estimator: Estimator, sequence: Sequence, max_frames: int | None = None, finish: bool = True, realtime: bool = False) -> Iterator[int]:
+def feed(estimator: Estimator | LivePipeline, sequence: Sequence, max_frames: int | None = None, finish: bool = True, realtime: bool = False) -> Iterator[int]:
     """Give the sequence's events to ``estimator`` in time order (with a progress bar), up to
     ``max_frames`` camera frames, then call its ``finish`` (unless ``finish`` is false). Yields the
     number of camera frames given so far after each one. With ``realtime`` an event is given no
@@ -89,27 +85,37 @@ def with_dataset_speed(sequence: Sequence, config: RunConfig) -> RunConfig:
     return config
 
 
-def run_estimator(sequence: Sequence, config: RunConfig | None = None, with_dem: bool = True) -> RunResult:
-    """Run ``config``'s estimator over ``sequence``, then make the run's metrics and DEM.
+def run_estimator(sequence: Sequence, config: RunConfig | None = None, with_dem: bool = True, viewer: ViewerOptions | None = None) -> RunResult:
+    """Run ``config``'s estimator over ``sequence`` in a :class:`LivePipeline` (the live map built as
+    the events come, measured against the truth as the guidance had it), then make the run's
+    metrics and its DEM from the final poses. ``viewer``: show it in rerun as it goes, or record it.
 
     ``config`` is taken as it is (make it with :func:`~dem_graph.pipeline.config.run_config` to
     have the dataset's own run settings under it); None: the defaults with the dataset's settings,
     as ``dem-graph run`` would without options."""
     config = with_dataset_speed(sequence, config or run_config(sequence))
-    estimator = make_estimator(sequence, config)
+    pipeline = LivePipeline.for_sequence(sequence, config, strict_order=True)
+    live = LiveRun.attach(pipeline, sequence.ground_truth, config.local_error)
+    shown = ViewerListener(pipeline, viewer, sequence.ground_truth) if viewer is not None else None
+    if shown is not None:
+        pipeline.listeners.append(shown)
     start = time.perf_counter()
     error = None
     frames = 0
     try:
         with threadpool_limits(limits=config.blas_threads, user_api="blas"):
-            for frames in feed(estimator, sequence, config.max_frames, realtime=config.realtime):  # noqa: B007 - read in the handler below
+            for frames in feed(pipeline, sequence, config.max_frames, realtime=config.realtime):  # noqa: B007 - read in the handler below
                 pass
     except DemGraphError as exc:
         error = str(exc)
         log.error("run stopped after %d frames: %s", frames, exc)
-    result = estimator.result()
-    run = RunResult(result, config, error=error, elapsed_s=time.perf_counter() - start)
+    if shown is not None:
+        shown.close()
+    result = pipeline.result()
+    run = RunResult(result, config, error=error, elapsed_s=time.perf_counter() - start, live=live)
     run.metrics = compute_metrics(sequence, result, error, run.elapsed_s)
+    if result.frames:
+        run.metrics.live_map = live.metrics(sequence.ground_truth, config.local_error)
     if with_dem and result.frames:
         run.dem = run_dem(run, sequence)
     return run
@@ -136,17 +142,18 @@ def run_dataset(
     out_dir: str | Path | None = None,
     dataset_options: DatasetOptions | None = None,
     fmt: str | None = None,
+    viewer: ViewerOptions | None = None,
 ) -> RunResult:
     """What ``dem-graph run DATASET`` runs: the dataset opened (a folder, KITTI or a ROS bag, told from
     the path unless ``fmt``; or a :class:`Sequence` already open), its configuration layered
     (defaults < the dataset's run settings < ``config_file`` < ``overrides``), the estimator run,
-    and, with ``out_dir``, the run folder written (``result.paths``). A run that stopped early
+    and, with ``out_dir``, the run folder written (``result.paths``); ``viewer``: shown or recorded in rerun. A run that stopped early
     (``result.error``) is written too, up to where it stopped."""
     if isinstance(dataset, Sequence):
         sequence, where = dataset, getattr(dataset, "path", None)
     else:
         sequence, where = open_dataset(dataset, fmt, dataset_options), dataset
-    result = run_estimator(sequence, run_config(sequence, config_file, overrides))
+    result = run_estimator(sequence, run_config(sequence, config_file, overrides), viewer=viewer)
     if where is not None:
         result.metrics.dataset = str(Path(where).resolve())
     result.metrics.dataset_options = sequence.open_options()

@@ -10,7 +10,10 @@
       metrics.json           accuracy and timing numbers (pretty, sorted keys, NaN and infinities as null)
       config.yaml            the configuration the run used
       dem.tif, dem.npz, dem.png, cloud.ply   the run's DEM (:func:`write_dem_outputs`)
-      local_dem_error.csv    with ground truth: the Fig. 8 measure frame by frame
+      local_dem_error.csv    with ground truth: the Fig. 8 measure frame by frame, in hindsight
+      live_map.tif           the map as it was built while the run went (GeoTIFF, layers as dem.tif's)
+      live_maps.nc           every k-th frame's local map as the guidance had it (netCDF: time x y x x)
+      live_dem_error.csv     with ground truth: the Fig. 8 measure on the live map, frame by frame
 
 Reading back: :func:`read_run_metrics`, :func:`run_folder_config`, :func:`load_run_poses`,
 :func:`load_run_points`, and :func:`run_folder_dem` (the DEM made again from the saved poses).
@@ -39,6 +42,7 @@ from dem_graph.io.dem_files import write_cloud_ply, write_dem_geotiff, write_dem
 from dem_graph.io.ply import read_points_ply, write_points_ply
 from dem_graph.io.tum import write_tum
 from dem_graph.pipeline.config import RunConfig, run_config
+from dem_graph.pipeline.live_run import LiveRun
 from dem_graph.pipeline.result import RunResult
 from dem_graph.pipeline.run_dem import RunDem, focus_local_dem, ground_returns, make_run_dem, pose_track_from_result
 from dem_graph.viz.dem_figure import write_dem_png
@@ -49,6 +53,9 @@ CONFIG_YAML = "config.yaml"
 POSES_NPZ = "poses.npz"
 POINTS_PLY = "points.ply"
 LOCAL_ERROR_CSV = "local_dem_error.csv"
+LIVE_MAP_TIF = "live_map.tif"
+LIVE_MAPS_NC = "live_maps.nc"
+LIVE_ERROR_CSV = "live_dem_error.csv"
 _RESERVED = ("trajectory", "points", "metrics", "config")
 
 
@@ -312,11 +319,30 @@ def write_run(run: RunResult, out_dir: str | Path) -> dict[str, Path]:
     paths["poses"] = save_run_poses(Path(out_dir) / POSES_NPZ, poses)
     if run.dem is not None:
         paths.update(write_run_dem(run.dem, out_dir))
+    if run.live is not None:
+        paths.update(write_live_outputs(run.live, out_dir))
+    return paths
+
+
+def write_live_outputs(live: LiveRun, out_dir: str | Path) -> dict[str, Path]:
+    """The live map's files: the map as built (``live_map.tif``), the saved local maps
+    (``live_maps.nc``) and, with truth, its Fig. 8 measure frame by frame (``live_dem_error.csv``)."""
+    out_dir = Path(out_dir)
+    paths = {}
+    if live.pipeline.map.grid.n_kept:
+        paths["live_map"] = write_dem_geotiff(out_dir / LIVE_MAP_TIF, live.pipeline.map.global_dem())
+    if live.recorder is not None:
+        written = live.recorder.write(out_dir / LIVE_MAPS_NC)
+        if written is not None:
+            paths["live_maps"] = written
+    if live.meter is not None and live.meter.times:
+        paths["live_dem_error"] = write_local_error_csv(out_dir / LIVE_ERROR_CSV, live.meter.series())
     return paths
 
 
 __all__ = [
     "CONFIG_YAML",
+    "LIVE_MAPS_NC",
     "LOCAL_ERROR_COLUMNS",
     "METRICS_JSON",
     "POSES_NPZ",
@@ -331,6 +357,7 @@ __all__ = [
     "save_run_poses",
     "write_dem_outputs",
     "write_json",
+    "write_live_outputs",
     "write_local_error_csv",
     "write_run",
     "write_run_dem",

@@ -1,0 +1,281 @@
+"""The live pipeline: events in one at a time, the estimate and the map the guidance steers by out
+after every camera frame.
+
+:class:`LivePipeline` takes events from any source (a dataset, a ROS bag, a vehicle's own driver
+callbacks) through :meth:`LivePipeline.on_event` (or ``on_frame`` / ``on_scan`` / ``on_odometry``),
+runs the chosen estimator and a :class:`~dem_graph.dem.live_map.LiveMap`, and after each frame the
+estimator completes returns a :class:`LiveUpdate`: the time, the pose and its covariance, the
+speed, and the local DEM over the focus area for that speed, in the vehicle's heading frame.
+
+- Every laser return goes into the map when its scan arrives, placed with the best pose known for
+  its time: interpolated between frames, or extrapolated at constant velocity past the latest one.
+- After each frame the poses of the last ``live_map.revision_window_s`` seconds are asked again
+  (a smoother revises them: in-process at once, from the graph process keyframes later) and the
+  scans whose pose moved are moved in the map. The estimator's map points go in as they leave it.
+- Bad input does not stop the map. A scan of the wrong length, or one with non-finite ranges, is
+  skipped or thinned with a warning; an event older than the last of its kind is skipped with a
+  warning (``strict_order``: raised, as a dataset run does, whose log is then broken); a camera
+  silent for ``camera_silent_s`` or a laser silent for ``laser_silent_s`` is warned about, and the
+  map goes on (scans placed by extrapolation; cells age).
+
+Listeners (``pipeline.listeners.append(fn)``) are called with each update: the run's live Fig. 8
+measure, the saved live maps and the viewer are listeners.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.dem.layers import Dem
+from dem_graph.dem.live_map import LiveMap
+from dem_graph.errors import DemGraphError
+from dem_graph.estimators.base import Estimator, FrameDrivenEstimator
+from dem_graph.estimators.ekf import EkfConfig, EkfSlam
+from dem_graph.estimators.isam2 import Isam2Config, Isam2Slam
+from dem_graph.estimators.settings import SharedSettings
+from dem_graph.frontend.focus import FocusArea
+from dem_graph.geometry.rig import SensorRig
+from dem_graph.pipeline.config import ESTIMATORS, RunConfig
+
+log = logging.getLogger(__name__)
+
+Event = CameraFrame | LaserScan | Odometry
+
+
+def make_estimator(rig: SensorRig, T_world_body_initial: np.ndarray, t_start_s: float, has_odometry: bool, config: RunConfig) -> FrameDrivenEstimator:
+    """The estimator ``config.estimator`` names, with the run's settings."""
+    shared = {k: getattr(config, k) for k in SharedSettings.model_fields}
+    args = (rig, T_world_body_initial, t_start_s, has_odometry)
+    if config.estimator in ("gm", "ptpm"):
+        return EkfSlam(*args, EkfConfig(**shared, **dict(config.ekf), variant=config.estimator))
+    if config.estimator in ("isam2", "isam2-batch"):
+        return Isam2Slam(*args, Isam2Config(**shared, **dict(config.isam2), batch=config.estimator == "isam2-batch"))
+    raise DemGraphError(f"unknown estimator '{config.estimator}'; choose one of {', '.join(ESTIMATORS)}")
+
+
+@dataclass
+class LiveUpdate:
+    """What the guidance gets after a frame."""
+
+    frame: int  # frames completed so far, this one included
+    t_s: float
+    T_world_body: np.ndarray  # 4x4
+    covariance: np.ndarray  # 6x6 [rotation, translation], right perturbation
+    speed_mps: float
+    local: Dem  # the focus area in the heading frame: elevation (relative to the body origin), variance, count, age_s, traversability
+    n_tracked: int  # points the estimator tracked in the frame
+    estimator_s: float  # time the estimator spent on the events since the last update
+    map_s: float  # time the live map spent (scans placed, revisions, the local map)
+    timing_s: dict[str, float] = field(default_factory=dict)  # the estimator's own phases for the frame
+    image: np.ndarray | None = field(default=None, repr=False)  # the frame's image
+
+
+class PoseWindow:
+    """The best poses known for the last seconds, at any time: between two poses, rotation slerp
+    and linear translation (as :class:`~dem_graph.geometry.trajectory.Trajectory`) and a linear
+    blend of the covariances; past the newest, the last two poses' motion carried on (constant
+    velocity) with the newest covariance; before the oldest, the oldest."""
+
+    def __init__(self, t_s: np.ndarray, T: np.ndarray, P: np.ndarray):
+        self.t_s, self.T, self.P = np.asarray(t_s, dtype=float), np.asarray(T, dtype=float), np.asarray(P, dtype=float)
+        if len(self.t_s) > 1:
+            R = self.T[:, :3, :3]
+            # each step's rotation as a rotation vector, once per window
+            self._step_rotvec = Rotation.from_matrix(np.einsum("nji,njk->nik", R[:-1], R[1:])).as_rotvec()
+
+    def at(self, t_query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = np.atleast_1d(np.asarray(t_query, dtype=float))
+        n = len(self.t_s)
+        if n == 1:
+            return np.repeat(self.T, len(t), axis=0), np.repeat(self.P, len(t), axis=0)
+        hi = np.clip(np.searchsorted(self.t_s, t, side="right"), 1, n - 1)
+        lo = hi - 1
+        a = np.maximum((t - self.t_s[lo]) / (self.t_s[hi] - self.t_s[lo]), 0.0)  # > 1 past the newest: extrapolated
+        T0 = self.T[lo]
+        T_out = np.empty((len(t), 4, 4))
+        T_out[:, 3] = (0.0, 0.0, 0.0, 1.0)
+        T_out[:, :3, :3] = T0[:, :3, :3] @ Rotation.from_rotvec(a[:, None] * self._step_rotvec[lo]).as_matrix()
+        T_out[:, :3, 3] = T0[:, :3, 3] + a[:, None] * (self.T[hi][:, :3, 3] - T0[:, :3, 3])
+        b = np.minimum(a, 1.0)[:, None, None]
+        return T_out, (1.0 - b) * self.P[lo] + b * self.P[hi]
+
+
+class LivePipeline:
+    """The estimator and the live map, fed one event at a time (see the module)."""
+
+    def __init__(
+        self,
+        rig: SensorRig,
+        T_world_body_initial: np.ndarray,
+        t_start_s: float,
+        has_odometry: bool,
+        config: RunConfig | None = None,
+        strict_order: bool = False,
+        estimator: Estimator | None = None,
+    ):
+        self.config = config or RunConfig()
+        c = self.config.live_map
+        self.rig = rig
+        self.estimator = estimator or make_estimator(rig, T_world_body_initial, t_start_s, has_odometry, self.config)
+        self.name = self.estimator.name
+        self.map = LiveMap(rig, self.config.dem.fusion, c.revision_window_s, c.tolerance_m, c.tolerance_rad, c.tile_cells, c.gate_min_count)
+        self.strict_order = strict_order
+        self.listeners: list[Callable[[LiveUpdate], None]] = []
+        self.updates = 0
+        self.map_timing_s: list[float] = []  # the live map's time per frame update (benchmarks)
+        P0 = np.eye(6) * self.config.motion.initial_sigma_pose**2
+        self._start = (float(t_start_s), np.array(T_world_body_initial, dtype=float), P0)
+        self._frame_t: deque[float] = deque()  # times of the frames in the revision window
+        self._window = PoseWindow(np.array([t_start_s]), self._start[1][None], P0[None])
+        self._points_seen = 0
+        self._last_t = {"frame": -math.inf, "scan": -math.inf, "odometry": -math.inf}
+        self._images: deque[tuple[float, np.ndarray]] = deque(maxlen=4)  # the frames the estimator may still hold
+        self._estimator_s = 0.0
+        self._map_s = 0.0
+        self._warned_silent = {"camera": False, "laser": False}
+        self.counters = {"events_out_of_order": 0, "scans_wrong_length": 0, "scans_nonfinite": 0, "camera_silences": 0, "laser_silences": 0}
+
+    @classmethod
+    def for_sequence(cls, sequence, config: RunConfig | None = None, strict_order: bool = False) -> LivePipeline:
+        """A pipeline for a dataset (:class:`~dem_graph.datasets.base.Sequence`): its rig, start and odometry."""
+        return cls(sequence.rig, sequence.T_world_body_initial, sequence.t_start_s, sequence.has_odometry, config, strict_order)
+
+    # --- events ------------------------------------------------------------------------------
+    def on_event(self, event: Event) -> LiveUpdate | None:
+        if isinstance(event, CameraFrame):
+            return self.on_frame(event)
+        if isinstance(event, LaserScan):
+            return self.on_scan(event)
+        if isinstance(event, Odometry):
+            return self.on_odometry(event)
+        raise DemGraphError(f"not an event the live pipeline takes: {type(event).__name__}")
+
+    def _in_order(self, kind: str, t_s: float, what: str) -> bool:
+        last = self._last_t[kind]
+        if math.isfinite(t_s) and t_s > last:
+            self._last_t[kind] = t_s
+            return True
+        if self.strict_order and kind == "frame":
+            return True  # the estimator refuses it with its own message (EventOrderError)
+        self.counters["events_out_of_order"] += 1
+        log.warning("%s at %.6f s is not after the last one (%.6f s): skipped", what, t_s, last)
+        return False
+
+    def on_frame(self, event: CameraFrame) -> LiveUpdate | None:
+        if not self._in_order("frame", event.t_s, f"camera frame {event.index}"):
+            return None
+        self._check_silence(event.t_s)
+        self._images.append((event.t_s, event.image))
+        return self._timed(self.estimator.on_frame, event)
+
+    def on_odometry(self, event: Odometry) -> LiveUpdate | None:
+        if not self._in_order("odometry", event.t_s, "odometry"):
+            return None
+        return self._timed(self.estimator.on_odometry, event)
+
+    def on_scan(self, event: LaserScan) -> LiveUpdate | None:
+        if not self._in_order("scan", event.t_s, f"laser scan {event.index}"):
+            return None
+        ranges = np.asarray(event.ranges_m, dtype=float).ravel()
+        if len(ranges) != self.map.n_beams:
+            self.counters["scans_wrong_length"] += 1
+            log.warning("laser scan %d at %.6f s has %d ranges, the rig's laser %d beams: skipped", event.index, event.t_s, len(ranges), self.map.n_beams)
+            return None
+        bad = ~np.isfinite(ranges)
+        if np.any(bad & ~np.isnan(ranges)):  # NaN is "no return"; an infinity or worse is worth a word
+            self.counters["scans_nonfinite"] += 1
+            if self.counters["scans_nonfinite"] == 1 or self.counters["scans_nonfinite"] % 100 == 0:
+                log.warning("laser scan %d at %.6f s has %d infinite ranges: those beams are left out (%d such scans so far)", event.index, event.t_s, int(np.sum(np.isinf(ranges))), self.counters["scans_nonfinite"])
+        self._warned_silent["laser"] = False
+        update = self._timed(self.estimator.on_scan, event)
+        t0 = time.perf_counter()
+        T, P = self._window.at(np.array([event.t_s]))
+        self.map.add_scan(event.t_s, ranges, T[0], P[0])
+        self._map_s += time.perf_counter() - t0
+        return update
+
+    def finish(self) -> LiveUpdate | None:
+        """The source has ended: the estimator processes anything it held back (the graph's last results come in)."""
+        return self._timed(self.estimator.finish)
+
+    def result(self):
+        return self.estimator.result()
+
+    # --- after the estimator -----------------------------------------------------------------
+    def _timed(self, handler, *args) -> LiveUpdate | None:
+        frames_before = self.estimator.frames_done
+        t0 = time.perf_counter()
+        handler(*args)
+        self._estimator_s += time.perf_counter() - t0
+        if self.estimator.frames_done == frames_before:
+            return None
+        return self._frame_done()
+
+    def _check_silence(self, t_s: float) -> None:
+        c = self.config.live_map
+        last_frame = self._last_frame_t()
+        if last_frame is not None and t_s - last_frame > c.camera_silent_s:
+            self.counters["camera_silences"] += 1
+            log.warning("no camera frame for %.2f s (until %.3f s): laser scans were placed with extrapolated poses", t_s - last_frame, t_s)
+        last_scan = self._last_t["scan"]
+        if math.isfinite(last_scan) and t_s - last_scan > c.laser_silent_s and not self._warned_silent["laser"]:
+            self.counters["laser_silences"] += 1
+            self._warned_silent["laser"] = True
+            log.warning("no laser scan for %.2f s (since %.3f s): no laser return goes into the map, its cells age", t_s - last_scan, last_scan)
+
+    def _last_frame_t(self) -> float | None:
+        return self._frame_t[-1] if self._frame_t else None
+
+    def _frame_done(self) -> LiveUpdate:
+        est = self.estimator
+        record = est.last_frame
+        t_now = record.t_s
+        window_s = self.config.live_map.revision_window_s
+        t0 = time.perf_counter()
+        self._frame_t.append(t_now)
+        while len(self._frame_t) > 2 and self._frame_t[1] < t_now - window_s:
+            self._frame_t.popleft()
+        t, T, P = est.recent_poses(len(self._frame_t))
+        if len(self._frame_t) == est.frames_done and self._start[0] < t[0]:  # the start pose is still inside the window
+            t, T, P = np.r_[self._start[0], t], np.concatenate([self._start[1][None], T]), np.concatenate([self._start[2][None], P])
+        self._window = PoseWindow(t, T, P)
+        # every scan still open to revision lies inside the window: the oldest frame kept is before the cut
+        self.map.freeze_before(t_now - window_s)
+        self.map.revise(self._window.at)
+        xyz, cov, created, self._points_seen = est.archived_points_since(self._points_seen)
+        if len(xyz) and self.config.dem.map_points:
+            self.map.add_points(xyz, cov[:, 2, 2], created)
+        speed = self._speed()
+        area = FocusArea.for_speed(self.config.frontend.focus, self.rig, speed)
+        T_now = T[-1]
+        local = self.map.local(T_now, (area.x_near_m, area.x_far_m), area.half_width_m, t_now, self.config.dem.traversability_window)
+        map_s = self._map_s + time.perf_counter() - t0
+        self.map_timing_s.append(map_s)
+        self.updates += 1
+        image = next((im for t, im in self._images if t == t_now), None)
+        update = LiveUpdate(self.updates, t_now, T_now.copy(), record.pose_covariance, speed, local, record.n_tracked, self._estimator_s, map_s, dict(record.timing_s), image)
+        self._estimator_s = self._map_s = 0.0
+        for listener in self.listeners:
+            listener(update)
+        return update
+
+    def _speed(self, span_s: float = 0.5) -> float:
+        """Mean speed over the last ``span_s`` of the pose window, m/s (NaN with one pose)."""
+        w = self._window
+        if len(w.t_s) < 2:
+            return float("nan")
+        i0 = int(np.searchsorted(w.t_s, w.t_s[-1] - span_s))
+        i0 = min(i0, len(w.t_s) - 2)
+        return float(np.linalg.norm(w.T[-1][:3, 3] - w.T[i0][:3, 3]) / (w.t_s[-1] - w.t_s[i0]))
+
+
+__all__ = ["LivePipeline", "LiveUpdate", "PoseWindow", "make_estimator"]
