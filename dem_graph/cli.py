@@ -166,20 +166,31 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_
 @main.command()
 @click.argument("run_dir", metavar="RUN", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--dataset", type=click.Path(path_type=Path), default=None, help="Dataset folder the run was made from [default: the one in RUN/metrics.json].")
-@click.option("--at", "at_s", type=float, default=None, help="Make the local map at this time (seconds) instead of the global one.")
+@click.option("--at", "at_s", type=float, default=None, help="The local map at this time (seconds) as the guidance had it then (RUN/live_maps.nc), instead of the global map.")
+@click.option("--hindsight", is_flag=True, help="With --at: the local map made again from the run's final poses, not the live one.")
 @click.option("--resolution", "resolution_m", type=float, default=None, help="Cell size, metres [default: the run's, else 0.1].")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None, help="Folder for dem.tif, dem.npz, dem.png, cloud.ply [default: RUN, or RUN/dem_at_<T> with --at].")
 @_friendly_errors
-def dem(run_dir, dataset, at_s, resolution_m, out_dir) -> None:
-    """Make a run's DEM again from its poses (global, or the local map at a time)."""
+def dem(run_dir, dataset, at_s, hindsight, resolution_m, out_dir) -> None:
+    """Make a run's DEM again from its poses (global), or show the local map at a time: the live one
+    the guidance had (from RUN/live_maps.nc), or with --hindsight one made from the final poses."""
     from dem_graph.pipeline.run_dem import DemMetrics
-    from dem_graph.pipeline.run_folder import remake_dem, write_run_dem
+    from dem_graph.pipeline.run_folder import live_map_of_run, remake_dem, write_dem_outputs, write_run_dem
 
+    if at_s is not None and not hindsight:
+        if resolution_m is not None:
+            raise click.UsageError("--resolution remakes a map: give it with --hindsight (the live map keeps the run's cells)")
+        live = live_map_of_run(run_dir, at_s)
+        out_dir = out_dir or run_dir / f"dem_at_{at_s:g}"
+        paths = write_dem_outputs(out_dir, live)
+        click.echo(f"live local map at {live.meta['t_s']:.3f} s (the last one saved at or before {at_s:g} s): {int(live.covered.sum())} cells of {live.geometry.resolution_m:g} m known")
+        click.echo(f"written: {', '.join(str(p) for p in paths.values())}")
+        return
     result = remake_dem(run_dir, dataset, at_s, resolution_m)
     out_dir = out_dir or (run_dir if at_s is None else run_dir / f"dem_at_{at_s:g}")
     paths = write_run_dem(result, out_dir)
     m = result.metrics
-    click.echo(f"DEM ({result.dem.frame}): {m.covered_cells} cells of {result.dem.geometry.resolution_m:g} m covered")
+    click.echo(f"DEM ({result.dem.frame}{', hindsight' if at_s is not None else ''}): {m.covered_cells} cells of {result.dem.geometry.resolution_m:g} m covered")
     e, c = (m.height_error_laser_cells, m.corridor) if isinstance(m, DemMetrics) else (None, None)  # a local map has no truth figures
     if e is not None and c is not None:
         click.echo(f"height RMSE {100 * e.rmse_m:.1f} cm over the laser-swept cells; corridor {100 * c.coverage:.0f} % covered")

@@ -13,6 +13,7 @@ from dem_graph.dem.returns import GroundReturns, PoseTrack
 from dem_graph.errors import DemGraphError
 from dem_graph.evaluation.dem_metrics import LocalErrorConfig
 from dem_graph.io.dem_files import read_dem_npz
+from dem_graph.io.live_maps import read_live_maps
 from dem_graph.pipeline.run_dem import ground_returns, make_run_dem
 from dem_graph.pipeline.run_folder import LOCAL_ERROR_COLUMNS, write_run_dem
 
@@ -83,14 +84,21 @@ def test_dem_command_makes_the_runs_dem_again_from_its_saved_poses(run_folder, t
     assert dem_metrics["covered_cells"] == int(np.isfinite(a.elevation).sum())
 
 
-def test_dem_command_local_map_at_a_time_holds_only_earlier_measurements(run_folder, tmp_path):
+@pytest.mark.parametrize("hindsight", [False, True])
+def test_dem_command_local_map_at_a_time_holds_only_earlier_measurements(run_folder, tmp_path, hindsight):
+    """The live map as saved at the last saved frame before T, or (--hindsight) one made from the final poses."""
     log, out = run_folder
-    r = CliRunner().invoke(main, ["--no-progress", "dem", str(out), "--dataset", str(log), "--at", "0.6", "--out", str(tmp_path / "local")])
+    argv = ["--no-progress", "dem", str(out), "--dataset", str(log), "--at", "0.6", "--out", str(tmp_path / "local")]
+    r = CliRunner().invoke(main, argv + (["--hindsight"] if hindsight else []))
     assert r.exit_code == 0, r.output
     local = read_dem_npz(tmp_path / "local" / "dem.npz")
     assert local.frame == "local"
     assert np.nanmax(local.layers["last_update_s"]) <= 0.6
-    assert local.geometry.x_min_m > 0  # the focus area lies ahead of the body
+    assert local.geometry.x_min_m > 0 if hindsight else local.geometry.x_min_m >= 0  # the focus area, or the saved window from the body on
+    if not hindsight:
+        saved = read_live_maps(out / "live_maps.nc")
+        t = float(local.meta["t_s"]) if "t_s" in local.meta else float(r.output.split(" at ")[1].split(" s")[0])
+        assert t == pytest.approx(saved["time"].values[saved["time"].values <= 0.6][-1], abs=1e-3)
 
 
 @pytest.mark.parametrize(
@@ -99,6 +107,7 @@ def test_dem_command_local_map_at_a_time_holds_only_earlier_measurements(run_fol
         (["dem", "{tmp}/nowhere"], "run folder not found"),
         (["dem", "{tmp}", "--dataset", "{log}"], "poses.npz: not found"),
         (["dem", "{run}", "--dataset", "{log}", "--at", "99"], "outside the run's poses"),
+        (["dem", "{run}", "--dataset", "{log}", "--at", "99", "--hindsight"], "outside the run's poses"),
     ],
 )
 def test_dem_command_bad_input_is_one_line(run_folder, tmp_path, args, message):

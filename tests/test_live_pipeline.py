@@ -213,3 +213,55 @@ def test_a_run_reports_the_live_fig8_next_to_the_hindsight_one(smoke_log):
     # both measure the same kind of map over the same window: within 2 cm of each other on smoke
     assert abs(live.mean_of_mean_m - hindsight.mean_of_mean_m) < 0.02
     assert live.mean_of_std_m == pytest.approx(hindsight.mean_of_std_m, abs=0.02)
+
+
+def test_a_recorded_run_loads_back_with_one_image_and_one_local_map_per_frame(smoke_log, tmp_path):
+    pytest.importorskip("rerun")
+    from dem_graph.pipeline.live_view import ViewerOptions
+    from dem_graph.viz.rerun_viewer import recording_rows
+
+    path = tmp_path / "smoke.rrd"
+    run = run_estimator(smoke_log, RunConfig(estimator="ptpm", max_frames=30), with_dem=False, viewer=ViewerOptions(record_path=path))
+    frames = len(run.estimator.frames)
+    assert frames == 30
+    rows = recording_rows(path)
+    assert rows["/camera/image"] == frames
+    assert rows["/local_map/height"] == frames
+    assert rows["/world/vehicle"] == frames
+    assert rows["/world/truth"] == 1
+    # the laser and camera points searched, in two entities, on the frames that tracked any
+    assert 0 < rows["/camera/image/laser_points"] <= frames and rows["/camera/image/camera_points"] == rows["/camera/image/laser_points"]
+
+
+def test_the_height_image_puts_ahead_up_and_left_on_the_left():
+    from dem_graph.viz.rerun_viewer import height_image
+
+    z = np.full((4, 6), np.nan)  # rows: left to right across the heading (y from +), columns: near to far
+    z[0, 5] = 0.3  # far left
+    rgb = height_image(z, (-0.3, 0.3))
+    assert rgb.shape == (6, 4, 3)
+    assert np.all(rgb[0, 0] > 0) and np.all(rgb[1:, :] == 0) and np.all(rgb[0, 1:] == 0)
+
+
+def test_driver_callbacks_and_a_guidance_reading_at_its_own_rate(smoke_log):
+    """The README's "On a vehicle": callbacks build the events; the guidance reads the map between frames."""
+    from dem_graph.pipeline.live import LivePipeline
+
+    live = LivePipeline(smoke_log.rig, smoke_log.T_world_body_initial, smoke_log.t_start_s, has_odometry=True, config=RunConfig(estimator="ptpm"))
+    with pytest.raises(Exception, match="no frame yet"):
+        live.local_map((1.0, 4.0), 1.5)
+    reads = []
+    for e in smoke_log.events():
+        if isinstance(e, CameraFrame):
+            update = live.on_frame(CameraFrame(e.t_s, e.image))
+        elif isinstance(e, LaserScan):
+            update = live.on_scan(LaserScan(e.t_s, e.ranges_m))
+        else:
+            update = live.on_odometry(Odometry(e.t_s, e.t_prev_s, e.T_prev_curr, e.covariance))
+        if update is not None and update.frame % 4 == 0:  # the guidance at a quarter of the camera's rate
+            g = update.local.geometry
+            x0, x1 = g.x_min_m, g.x_min_m + (g.n_cols - 0.5) * g.resolution_m  # the update's window (half a cell in: no rounding up)
+            reads.append((live.local_map((x0, x1), g.y_max_m), update.local))
+    assert len(reads) >= 10
+    for got, want in reads:
+        np.testing.assert_array_equal(got.elevation, want.elevation)  # read at once: the map the update gave

@@ -47,6 +47,18 @@ def frame_timing_summary(per_frame: dict[str, list[float]]) -> dict[str, PhaseTi
     return summary
 
 
+def resident_memory_mb() -> float:
+    """This process's resident memory now, MiB (Linux ``/proc/self/statm``; NaN elsewhere)."""
+    import os
+
+    try:
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return float("nan")
+    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
 def machine_description() -> str:
     import os
 

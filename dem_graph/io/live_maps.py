@@ -115,6 +115,8 @@ def live_map_at(path: str | Path, t_s: float) -> Dem:
     r = float(ds.attrs["resolution_m"])
     geometry = GridGeometry(float(x[0] - r / 2), float(y[0] + r / 2), r, len(y), len(x))
     layers = {name: ds[name].values[i].astype(np.float32) for name in json.loads(ds.attrs["layers"])}
+    if "age_s" in layers:
+        layers["last_update_s"] = (float(times[i]) - layers["age_s"]).astype(np.float32)
     xw, yw, zw, yaw = (float(ds[name].values[i]) for name in _POSE_VARS)
     c, s = np.cos(yaw), np.sin(yaw)
     T = np.eye(4)

@@ -131,7 +131,9 @@ class LivePipeline:
         self.strict_order = strict_order
         self.listeners: list[Callable[[LiveUpdate], None]] = []
         self.updates = 0
+        self.latest: LiveUpdate | None = None  # the last update given
         self.map_timing_s: list[float] = []  # the live map's time per frame update (benchmarks)
+        self.frame_timing_s: list[float] = []  # the whole frame: the estimator's events since the last update and the live map
         P0 = np.eye(6) * self.config.motion.initial_sigma_pose**2
         self._start = (float(t_start_s), np.array(T_world_body_initial, dtype=float), P0)
         self._frame_t: deque[float] = deque()  # times of the frames in the revision window
@@ -208,7 +210,17 @@ class LivePipeline:
         return self._timed(self.estimator.finish)
 
     def result(self):
+        """Everything the estimator has estimated so far (:class:`~dem_graph.estimators.base.EstimatorResult`)."""
         return self.estimator.result()
+
+    def local_map(self, x_range_m: tuple[float, float], half_width_m: float) -> Dem:
+        """The local map now, over any window of the heading frame (``x_range_m`` ahead,
+        ``half_width_m`` each side), from the latest pose: for a guidance that reads the map at its
+        own rate. :class:`DemGraphError` before the first frame."""
+        if self.latest is None:
+            raise DemGraphError("no frame yet: the live map has no pose to read the local map from")
+        u = self.latest
+        return self.map.local(u.T_world_body, x_range_m, half_width_m, u.t_s, self.config.dem.traversability_window)
 
     # --- after the estimator -----------------------------------------------------------------
     def _timed(self, handler, *args) -> LiveUpdate | None:
@@ -260,10 +272,12 @@ class LivePipeline:
         local = self.map.local(T_now, (area.x_near_m, area.x_far_m), area.half_width_m, t_now, self.config.dem.traversability_window)
         map_s = self._map_s + time.perf_counter() - t0
         self.map_timing_s.append(map_s)
+        self.frame_timing_s.append(self._estimator_s + map_s)
         self.updates += 1
         image = next((im for t, im in self._images if t == t_now), None)
         update = LiveUpdate(self.updates, t_now, T_now.copy(), record.pose_covariance, speed, local, record.n_tracked, self._estimator_s, map_s, dict(record.timing_s), image)
         self._estimator_s = self._map_s = 0.0
+        self.latest = update
         for listener in self.listeners:
             listener(update)
         return update

@@ -27,7 +27,7 @@ from dem_graph.evaluation.dem_metrics import (
     truth_at_cells,
 )
 from dem_graph.evaluation.results import MetricsModel, Number
-from dem_graph.evaluation.timing import TimingStats
+from dem_graph.evaluation.timing import TimingStats, resident_memory_mb
 from dem_graph.geometry.grid import GridGeometry
 from dem_graph.io.live_maps import SAVED_LAYERS, LiveMapWriter
 from dem_graph.pipeline.config import LiveMapConfig
@@ -39,6 +39,9 @@ class LiveMapMetrics(MetricsModel):
 
     update_median_ms: Number  # the live map's time per frame: scans placed, revisions, the local map
     update_p95_ms: Number
+    whole_frame_median_ms: Number  # the estimator on the frame's events (front end included) and the live map
+    whole_frame_p95_ms: Number
+    resident_memory_mb: dict[str, float] | None = None  # the process's, at frames 150, 1500 and the last
     scans: int
     returns: int  # laser returns placed
     returns_moved: int  # re-placed because their poses were revised
@@ -51,6 +54,22 @@ class LiveMapMetrics(MetricsModel):
     local_window: LocalErrorSummary | None = None  # Fig. 8 on the map as the guidance had it
     bad_input: dict[str, int] | None = None  # events skipped or warned about, by kind
     saved_maps: int = 0
+
+
+class MemoryProbe:
+    """A listener: the process's resident memory at frames 150 and 1500."""
+
+    FRAMES = (150, 1500)
+
+    def __init__(self):
+        self.mb: dict[str, float] = {}
+
+    def __call__(self, update: LiveUpdate) -> None:
+        if update.frame in self.FRAMES:
+            self.mb[f"frame_{update.frame}"] = resident_memory_mb()
+
+    def summary(self, frames: int) -> dict[str, float]:
+        return {**self.mb, f"frame_{frames}": resident_memory_mb()} if frames else dict(self.mb)
 
 
 class LiveErrorMeter:
@@ -101,18 +120,21 @@ class LiveRun:
     pipeline: LivePipeline
     meter: LiveErrorMeter | None = None
     recorder: LiveMapRecorder | None = None
+    memory: MemoryProbe | None = None
 
     @classmethod
     def attach(cls, pipeline: LivePipeline, truth: GroundTruth | None, window: LocalErrorConfig) -> LiveRun:
         meter = LiveErrorMeter(pipeline, truth, window) if truth is not None and truth.elevation is not None else None
         recorder = LiveMapRecorder(pipeline, pipeline.config.live_map) if pipeline.config.live_map.save_every_n_frames else None
-        pipeline.listeners.extend(x for x in (meter, recorder) if x is not None)
-        return cls(pipeline, meter, recorder)
+        memory = MemoryProbe()
+        pipeline.listeners.extend(x for x in (meter, recorder, memory) if x is not None)
+        return cls(pipeline, meter, recorder, memory)
 
     def metrics(self, truth: GroundTruth | None, window: LocalErrorConfig) -> LiveMapMetrics:
         p = self.pipeline
         m = p.map
         timing = TimingStats.from_seconds(p.map_timing_s)
+        whole = TimingStats.from_seconds(p.frame_timing_s)
         covered = 0
         height = None
         if m.grid.n_kept:
@@ -125,6 +147,9 @@ class LiveRun:
         return LiveMapMetrics(
             update_median_ms=timing.median_ms,
             update_p95_ms=timing.p95_ms,
+            whole_frame_median_ms=whole.median_ms,
+            whole_frame_p95_ms=whole.p95_ms,
+            resident_memory_mb=self.memory.summary(p.updates) if self.memory is not None else None,
             scans=c["scans"],
             returns=c["returns"],
             returns_moved=c["returns_moved"],
@@ -140,4 +165,4 @@ class LiveRun:
         )
 
 
-__all__ = ["LiveErrorMeter", "LiveMapMetrics", "LiveMapRecorder", "LiveRun"]
+__all__ = ["LiveErrorMeter", "LiveMapMetrics", "LiveMapRecorder", "LiveRun", "MemoryProbe"]

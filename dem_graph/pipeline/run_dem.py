@@ -161,7 +161,7 @@ def make_run_dem(
     return RunDem(dem, returns, poses, m, series)
 
 
-def _require_time(poses: PoseTrack, t_s: float) -> None:
+def require_time(poses: PoseTrack, t_s: float) -> None:
     if not poses.covers(np.array([t_s]))[0]:
         raise DemGraphError(f"time {t_s:.3f} s is outside the run's poses [{poses.t_s[0]:.3f}, {poses.t_s[-1]:.3f}] s")
 
@@ -169,14 +169,14 @@ def _require_time(poses: PoseTrack, t_s: float) -> None:
 def make_local_dem(returns: GroundReturns, poses: PoseTrack, t_s: float, x_range_m: tuple[float, float], half_width_m: float, config: DemConfig | None = None) -> RunDem:
     """The local map at ``t_s`` (what was measured until then), as the guidance asks for it."""
     config = config or DemConfig()
-    _require_time(poses, t_s)
+    require_time(poses, t_s)
     dem = local_dem(returns, poses, t_s, x_range_m, half_width_m, config.fusion, history_s=config.local_history_s, traversability_window=config.traversability_window)
     return RunDem(dem, returns.until(t_s), poses, LocalDemMetrics(t_s=t_s, covered_cells=int(dem.covered.sum())))
 
 
 def focus_local_dem(returns: GroundReturns, poses: PoseTrack, t_s: float, rig, focus: FocusConfig | None = None, config: DemConfig | None = None) -> RunDem:
     """The local map at ``t_s`` over the focus area the guidance needs at the vehicle's speed then."""
-    _require_time(poses, t_s)
+    require_time(poses, t_s)
     area = FocusArea.for_speed(focus or FocusConfig(), rig, speed_at(poses, t_s))
     return make_local_dem(returns, poses, t_s, (area.x_near_m, area.x_far_m), area.half_width_m, config)
 
@@ -193,5 +193,6 @@ __all__ = [
     "make_local_dem",
     "make_run_dem",
     "pose_track_from_result",
+    "require_time",
     "result_points",
 ]

@@ -39,12 +39,13 @@ from dem_graph.errors import ConfigError, DatasetError, DemGraphError
 from dem_graph.evaluation.dem_metrics import LocalErrorSeries
 from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.io.dem_files import write_cloud_ply, write_dem_geotiff, write_dem_npz
+from dem_graph.io.live_maps import live_map_at
 from dem_graph.io.ply import read_points_ply, write_points_ply
 from dem_graph.io.tum import write_tum
 from dem_graph.pipeline.config import RunConfig, run_config
 from dem_graph.pipeline.live_run import LiveRun
 from dem_graph.pipeline.result import RunResult
-from dem_graph.pipeline.run_dem import RunDem, focus_local_dem, ground_returns, make_run_dem, pose_track_from_result
+from dem_graph.pipeline.run_dem import RunDem, focus_local_dem, ground_returns, make_run_dem, pose_track_from_result, require_time as _require_time
 from dem_graph.viz.dem_figure import write_dem_png
 
 TRAJECTORY_TUM = "trajectory.tum"
@@ -298,6 +299,18 @@ def remake_dem(run_dir: str | Path, dataset: str | Path | None = None, at_s: flo
     return run_folder_dem(run_dir, sequence, at_s, config)
 
 
+def live_map_of_run(run_dir: str | Path, t_s: float) -> Dem:
+    """The live local map a run saved last at or before ``t_s`` (``RUN/live_maps.nc``)."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise DatasetError(run_dir, "run folder not found")
+    path = run_dir / LIVE_MAPS_NC
+    if not path.is_file():
+        raise DatasetError(path, "not found: the run saved no live map (an older run, or live_map.save_every_n_frames: 0); --hindsight makes one from its poses")
+    _require_time(load_run_poses(run_dir), t_s)
+    return live_map_at(path, t_s)
+
+
 def write_run(run: RunResult, out_dir: str | Path) -> dict[str, Path]:
     """Write the whole run folder (see the module); returns the written paths by name."""
     res = run.estimator
@@ -348,6 +361,7 @@ __all__ = [
     "POSES_NPZ",
     "TRAJECTORY_TUM",
     "json_text",
+    "live_map_of_run",
     "load_run_points",
     "load_run_poses",
     "read_run_metrics",

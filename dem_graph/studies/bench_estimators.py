@@ -1,8 +1,11 @@
 """Estimator benchmark: time per frame against the number of live points (the paper's Fig. 12).
 
-The log is simulated once and held in memory, so only the estimator (tracking included) is timed.
+The log is simulated once and held in memory, so only the estimator (tracking included) and the
+live map are timed: ``frame ms`` is the estimator's own time on a frame, ``map ms`` the live map's
+update, ``whole frame ms`` both with the estimator's time on the scans and odometry in between.
 With 1550 frames or more, each row also gives the median time per frame around frame 1500 over
-the median around frame 150 (100 frames each): a cost that grows with the run shows there.
+the median around frame 150 (100 frames each), and the resident memory at frame 1500 over that
+at frame 150: a cost that grows with the run shows there.
 """
 
 from __future__ import annotations
@@ -35,6 +38,9 @@ class BenchRow:
     drift_percent: float
     late_over_early: float = float("nan")  # median ms around frame 1500 / around frame 150
     graph_lag_keyframes: float = float("nan")  # isam2: median keyframes between a keyframe and its graph result
+    live_map: TimingStats | None = None  # the live map's update per frame
+    whole_frame: TimingStats | None = None  # the estimator's events and the live map, per frame
+    memory_late_over_early: float = float("nan")  # resident memory at frame 1500 / at frame 150
 
     @property
     def frames_per_s(self) -> float:
@@ -61,12 +67,15 @@ class EstimatorBenchResult:
                 f"{r.tracking.median_ms:.1f}", f"{r.update.median_ms:.1f}", f"{r.graph.mean_ms:.1f}", f"{r.frames_per_s:.1f}", f"{r.points_per_s:.0f}", f"{r.drift_percent:.2f}",
                 "-" if np.isnan(r.late_over_early) else f"{r.late_over_early:.2f}",
                 "-" if np.isnan(r.graph_lag_keyframes) else f"{r.graph_lag_keyframes:.0f}",
+                f"{r.live_map.median_ms:.2f}", f"{r.live_map.p95_ms:.2f}", f"{r.whole_frame.median_ms:.1f}", f"{r.whole_frame.p95_ms:.1f}",
+                "-" if np.isnan(r.memory_late_over_early) else f"{r.memory_late_over_early:.3f}",
             ]
             for r in self.rows
         ]
         headers = [
             "estimator", "cap n", "live", "tracked", "frame ms (median)", "frame ms (p95)", "tracking ms", "update ms", "graph ms (mean)", "frames/s", "points/s", "drift %",
-            "frame 1500 / frame 150", "graph lag (keyframes)",
+            "frame 1500 / frame 150", "graph lag (keyframes)", "map ms (median)", "map ms (p95)", "whole frame ms (median)", "whole frame ms (p95)",
+            "memory 1500 / 150",
         ]
         return format_table(headers, rows, title=f"estimator benchmark: '{self.scenario}' {self.image_size}, {self.frames} frames {'at the camera rate' if self.realtime else 'as fast as possible'}, on {self.machine}")
 
@@ -114,6 +123,8 @@ def bench_estimators(
             config.realtime = realtime
             run = run_estimator(log, config)
             fr = run.estimator.frames[5:]  # skip the start, while the map fills
+            live = run.live.pipeline
+            memory = run.metrics.live_map.resident_memory_mb or {}
             total = np.array([f.timing_s["total"] for f in run.estimator.frames])
             ratio = float(np.median(total[1450:1550]) / np.median(total[100:200])) if len(total) >= 1550 else float("nan")
             rows.append(
@@ -129,6 +140,9 @@ def bench_estimators(
                     float(run.metrics.trajectory.drift_percent),
                     ratio,
                     float(run.estimator.counters.get("graph_lag_keyframes_median", np.nan)),
+                    TimingStats.from_seconds(live.map_timing_s[5:]),
+                    TimingStats.from_seconds(live.frame_timing_s[5:]),
+                    memory.get("frame_1500", np.nan) / memory.get("frame_150", np.nan),
                 )
             )
     cam = sim.rig.camera

@@ -247,7 +247,9 @@ def report_page(comparison: Comparison, config: RunConfig) -> ReportPage:
         "ATE: RMS position error anchored at the initial pose, and after the best rigid alignment; drift: final error in % of the "
         "distance travelled; RPE 10 m: RMS relative-pose error between poses 10 m apart along the ground truth ('-' for a shorter run); "
         "DEM RMSE: height error over the cells a laser return reached; Fig. 8: mean over time of the local DEM's mean and standard "
-        "deviation of the height error ahead of the vehicle; time per frame includes tracking; points/frame: live points, median.",
+        "deviation of the height error ahead of the vehicle, in hindsight (made from the run's final poses); live Fig. 8: the same "
+        "on the live map as the guidance had it at each frame; time per frame includes tracking; points/frame: live points, median; "
+        "map ms: the live map's update per frame (scans placed, revisions, the local map), median.",
     ]
     notes = [f"{r.estimator}: {r.status_text()}" for r in comparison.runs if r.status != "ok"]
     if comparison.figure_error:

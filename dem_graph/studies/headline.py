@@ -37,9 +37,12 @@ COLUMNS: tuple[Column, ...] = (
     Column("dem_rmse_laser_cells_m", "DEM RMSE (cm)", ("dem", "height_error_laser_cells", "rmse_m"), scale=100.0, digits=2),
     Column("local_error_mean_m", "Fig. 8 mean (cm)", ("dem", "local_window", "mean_of_mean_m"), scale=100.0, digits=2),
     Column("local_error_std_m", "Fig. 8 std (cm)", ("dem", "local_window", "mean_of_std_m"), scale=100.0, digits=2),
+    Column("live_local_error_mean_m", "live Fig. 8 mean (cm)", ("live_map", "local_window", "mean_of_mean_m"), scale=100.0, digits=2),
+    Column("live_local_error_std_m", "live Fig. 8 std (cm)", ("live_map", "local_window", "mean_of_std_m"), scale=100.0, digits=2),
     Column("time_per_frame_median_ms", "frame ms (median)", ("time_per_frame", "total", "median_ms"), digits=1),
     Column("time_per_frame_p95_ms", "frame ms (p95)", ("time_per_frame", "total", "p95_ms"), digits=1),
     Column("points_per_frame", "points/frame", ("points_per_frame", "live_median"), digits=0),
+    Column("live_map_update_median_ms", "map ms (median)", ("live_map", "update_median_ms"), digits=2),
 )
 
 # the forms a section takes when it was not measured: it holds no number
