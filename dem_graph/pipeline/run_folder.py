@@ -45,7 +45,8 @@ from dem_graph.io.tum import write_tum
 from dem_graph.pipeline.config import RunConfig, run_config
 from dem_graph.pipeline.live_run import LiveRun
 from dem_graph.pipeline.result import RunResult
-from dem_graph.pipeline.run_dem import RunDem, focus_local_dem, ground_returns, make_run_dem, pose_track_from_result, require_time as _require_time
+from dem_graph.pipeline.run_dem import RunDem, focus_local_dem, ground_returns, make_run_dem, pose_track_from_result
+from dem_graph.pipeline.run_dem import require_time as _require_time
 from dem_graph.viz.dem_figure import write_dem_png
 
 TRAJECTORY_TUM = "trajectory.tum"
