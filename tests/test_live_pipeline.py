@@ -265,3 +265,22 @@ def test_driver_callbacks_and_a_guidance_reading_at_its_own_rate(smoke_log):
     assert len(reads) >= 10
     for got, want in reads:
         np.testing.assert_array_equal(got.elevation, want.elevation)  # read at once: the map the update gave
+
+
+def test_the_map_is_saved_at_any_time_and_reads_back(smoke_log, tmp_path):
+    from dem_graph.io.geotiff import read_elevation_geotiff
+
+    live = LivePipeline.for_sequence(smoke_log, RunConfig(estimator="gm"))
+    saved = []
+    for e in smoke_log.events():
+        update = live.on_event(e)
+        if update is not None and update.frame in (20, 40):
+            saved.append((live.save_map(tmp_path / f"map_{update.frame}.tif"), live.map.global_dem()))
+    for path, dem in saved:
+        geometry, bands = read_elevation_geotiff(path)
+        assert geometry == dem.geometry
+        z = bands["elevation"]
+        np.testing.assert_array_equal(np.isfinite(z), dem.covered)
+        np.testing.assert_allclose(z[dem.covered], dem.elevation[dem.covered])
+        np.testing.assert_array_equal(bands["count"], dem.layers["count"])
+    assert saved[1][1].covered.sum() > saved[0][1].covered.sum()  # the map grew between the two saves

@@ -30,6 +30,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -212,6 +213,12 @@ class LivePipeline:
     def result(self):
         """Everything the estimator has estimated so far (:class:`~dem_graph.estimators.base.EstimatorResult`)."""
         return self.estimator.result()
+
+    def save_map(self, path) -> Path:
+        """Save everything mapped so far as a GeoTIFF (north-up, world metres, one band per layer), at any time."""
+        from dem_graph.io.dem_files import write_dem_geotiff
+
+        return write_dem_geotiff(path, self.map.global_dem(self.config.dem.traversability_window))
 
     def local_map(self, x_range_m: tuple[float, float], half_width_m: float) -> Dem:
         """The local map now, over any window of the heading frame (``x_range_m`` ahead,
