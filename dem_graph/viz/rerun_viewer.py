@@ -49,6 +49,21 @@ def height_image(elevation: np.ndarray, height_range_m: tuple[float, float]) -> 
     return rgb
 
 
+def blueprint():
+    """The viewer's layout: the camera over the local map on the left, the world in 3D on the right,
+    following the latest frame."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(rrb.Spatial2DView(name="camera", origin="/camera"), rrb.Spatial2DView(name="local map", origin="/local_map"), row_shares=[3, 2]),
+            rrb.Spatial3DView(name="world", origin="/world"),
+            column_shares=[2, 3],
+        ),
+        rrb.TimePanel(timeline="time", play_state="following"),
+    )
+
+
 class RerunViewer:
     """Logs frames to rerun (see the module)."""
 
@@ -57,14 +72,16 @@ class RerunViewer:
             raise DemGraphError("the viewer needs somewhere to go: spawn a viewer, or give a recording file")
         rr = _rerun()
         self.rr = rr
-        self.stream = rr.RecordingStream("dem_graph", recording_id=name)
+        self.stream = rr.RecordingStream("dem_graph")  # a new recording id for every run
+        self.stream.log("run", rr.TextDocument(f"dem_graph run: {name}"), static=True)
+        layout = blueprint()
         if record_path is not None:
             path = Path(record_path)
             if not path.parent.is_dir():
                 raise DemGraphError(f"{path.parent}: folder not found for the recording")
-            self.stream.save(path)
+            self.stream.save(path, default_blueprint=layout)
         if spawn:
-            self.stream.spawn(connect=record_path is None)
+            self.stream.spawn(connect=record_path is None, default_blueprint=layout)
         self.height_range_m = height_range_m
         self.trajectory_every = int(trajectory_every)
         self._positions: list[np.ndarray] = []
