@@ -25,7 +25,7 @@ keeps them. What the map holds is always exactly the weighted mean of its kept m
 batch fusion of them with the gate off), which the tests check to 1e-9.
 
 **Memory.** Cells live in square tiles of ``tile_cells`` cells a side, made where a measurement
-first lands (kept one after the other in one array that grows by half when full): the grid
+first lands (kept one after the other in one array that grows by a quarter when full): the grid
 follows the vehicle, and its memory grows with the area mapped (48 bytes a cell), not with time
 or with the number of measurements. Every tile is part of the global map, which
 :meth:`IncrementalDem.to_dem` turns into a :class:`~dem_graph.dem.layers.Dem` at any time.
@@ -126,8 +126,8 @@ class IncrementalDem:
     def _new_tile(self, tile: tuple[int, int]) -> int:
         size = self.tile_cells**2
         row = len(self._tile_row)
-        if (row + 1) * size > self._store.shape[1]:  # grow by half again: amortised, and little spare memory
-            grown = np.zeros((len(_SUMS), max(4, int(1.5 * (row + 1))) * size))
+        if (row + 1) * size > self._store.shape[1]:  # grow by a quarter: amortised, and little spare memory
+            grown = np.zeros((len(_SUMS), max(4, int(1.25 * (row + 1)) + 1) * size))
             grown[5] = -np.inf
             grown[:, : self._store.shape[1]] = self._store
             self._store = grown

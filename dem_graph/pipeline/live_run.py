@@ -57,19 +57,22 @@ class LiveMapMetrics(MetricsModel):
 
 
 class MemoryProbe:
-    """A listener: the process's resident memory at frames 150 and 1500."""
+    """A listener: the process's resident memory at frames 150 and 1500, and at the last frame."""
 
     FRAMES = (150, 1500)
 
     def __init__(self):
         self.mb: dict[str, float] = {}
+        self._last: tuple[int, float] | None = None
 
     def __call__(self, update: LiveUpdate) -> None:
+        mb = resident_memory_mb()  # a read of /proc/self/statm: microseconds
         if update.frame in self.FRAMES:
-            self.mb[f"frame_{update.frame}"] = resident_memory_mb()
+            self.mb[f"frame_{update.frame}"] = mb
+        self._last = (update.frame, mb)
 
-    def summary(self, frames: int) -> dict[str, float]:
-        return {**self.mb, f"frame_{frames}": resident_memory_mb()} if frames else dict(self.mb)
+    def summary(self) -> dict[str, float]:
+        return {**self.mb, f"frame_{self._last[0]}": self._last[1]} if self._last else dict(self.mb)
 
 
 class LiveErrorMeter:
@@ -149,7 +152,7 @@ class LiveRun:
             update_p95_ms=timing.p95_ms,
             whole_frame_median_ms=whole.median_ms,
             whole_frame_p95_ms=whole.p95_ms,
-            resident_memory_mb=self.memory.summary(p.updates) if self.memory is not None else None,
+            resident_memory_mb=self.memory.summary() if self.memory is not None else None,
             scans=c["scans"],
             returns=c["returns"],
             returns_moved=c["returns_moved"],
