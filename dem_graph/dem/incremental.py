@@ -25,12 +25,13 @@ keeps them. What the map holds is always exactly the weighted mean of its kept m
 batch fusion of them with the gate off), which the tests check to 1e-9.
 
 **Memory.** Cells live in square tiles of ``tile_cells`` cells a side, made where a measurement
-first lands (kept one after the other in one array that grows by a quarter when full): the grid
-follows the vehicle, and its memory grows with the area mapped (48 bytes a cell), not with time
-or with the number of measurements. Every tile is part of the global map, which
+first lands, one after the other in one array reserved for ``reserve_tiles`` tiles whose memory
+the system provides as tiles are first written: the grid follows the vehicle, and its memory grows
+with the area mapped (48 bytes a cell), not with time or with the number of measurements. Every tile is part of the global map, which
 :meth:`IncrementalDem.to_dem` turns into a :class:`~dem_graph.dem.layers.Dem` at any time.
 
-``last_update_s`` is the time of the latest measurement a cell took; a removal does not take it back.
+``last_update_s`` is the time of the latest measurement a cell took; a removal does not take it
+back. (Times earlier than the first measurement's by over a second are recorded as that.)
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from dem_graph.geometry.grid import GridGeometry
 
 INCREMENTAL_LAYERS = ("elevation", "variance", "count", "laser_count", "outliers", "last_update_s")
 _SUMS = ("w", "wz", "n", "n_laser", "n_out", "t_last")  # a tile's arrays, in this order
+_T_NONE = 0.0  # t_last of a cell that never took a measurement (times are stored after _T_OFFSET_S)
 
 
 @dataclass(frozen=True)
@@ -74,7 +76,7 @@ class Placed:
 class IncrementalDem:
     """The global map as per-cell information sums in tiles (see the module)."""
 
-    def __init__(self, config: FusionConfig | None = None, tile_cells: int = 32, gate_min_count: int = 3):
+    def __init__(self, config: FusionConfig | None = None, tile_cells: int = 32, gate_min_count: int = 3, reserve_tiles: int = 8192):
         if tile_cells < 1:
             raise DemGraphError(f"tile_cells must be at least 1, got {tile_cells}")
         self.config = config or FusionConfig()
@@ -82,7 +84,11 @@ class IncrementalDem:
         self.tile_cells = int(tile_cells)
         self.gate_min_count = int(gate_min_count)
         self._tile_row: dict[tuple[int, int], int] = {}  # (tx, ty) -> the tile's block in the store
-        self._store = np.zeros((len(_SUMS), 0))  # (6, tiles * tile_cells**2): _SUMS, tile after tile
+        # (6, tiles * tile_cells**2): _SUMS, tile after tile. Reserved at once but zero-filled by the
+        # system on first touch (calloc), so only the tiles made take memory, and a growing map is
+        # never copied (a copy would leave the old array's memory to the allocator)
+        self._store = np.zeros((len(_SUMS), max(1, int(reserve_tiles)) * self.tile_cells**2))
+        self._t0: float | None = None  # times are stored as t - _t0 + 1 s: 0 is "never"
         self.n_kept = 0  # measurements in the sums now
         self.n_rejected = 0  # measurements held as outliers now
 
@@ -126,9 +132,8 @@ class IncrementalDem:
     def _new_tile(self, tile: tuple[int, int]) -> int:
         size = self.tile_cells**2
         row = len(self._tile_row)
-        if (row + 1) * size > self._store.shape[1]:  # grow by a quarter: amortised, and little spare memory
-            grown = np.zeros((len(_SUMS), max(4, int(1.25 * (row + 1)) + 1) * size))
-            grown[5] = -np.inf
+        if (row + 1) * size > self._store.shape[1]:  # past the reserve (8192 tiles: 0.08 km2 at 10 cm and 32 cells): twice the room
+            grown = np.zeros((len(_SUMS), 2 * self._store.shape[1]))
             grown[:, : self._store.shape[1]] = self._store
             self._store = grown
         self._tile_row[tile] = row
@@ -163,7 +168,9 @@ class IncrementalDem:
                 d = z - store[1, flat] / W
                 kept |= d * d <= c.gate_sigma**2 * (var + 1.0 / W + c.gate_floor_m**2)
         self._accumulate(flat, w, wz, laser, kept, sign=1.0)
-        np.maximum.at(store[5], flat[kept], t[kept])
+        if self._t0 is None:
+            self._t0 = float(t.min()) - 1.0
+        np.maximum.at(store[5], flat[kept], np.maximum(t[kept] - self._t0, 1e-9))  # an earlier time than the first's: as the first's
         n_kept = int(kept.sum())
         self.n_kept += n_kept
         self.n_rejected += len(kept) - n_kept
@@ -211,7 +218,7 @@ class IncrementalDem:
             "count": s[2].copy(),
             "laser_count": s[3].copy(),
             "outliers": s[4].copy(),
-            "last_update_s": np.where(np.isfinite(s[5]) & has, s[5], np.nan),
+            "last_update_s": np.where((s[5] > _T_NONE) & has, s[5] + (self._t0 or 0.0), np.nan),
         }
 
     def sample(self, x_m: np.ndarray, y_m: np.ndarray) -> dict[str, np.ndarray]:
@@ -221,7 +228,6 @@ class IncrementalDem:
         shape = x.shape
         ix, iy = self.cell_of(x.ravel(), np.asarray(y_m, dtype=float).ravel())
         sums = np.zeros((len(_SUMS), len(ix)))
-        sums[5] = -np.inf
         if len(ix) and self.n_tiles:
             flat = self._flat(ix, iy, create=False)
             known = flat >= 0
