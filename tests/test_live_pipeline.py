@@ -284,3 +284,19 @@ def test_the_map_is_saved_at_any_time_and_reads_back(smoke_log, tmp_path):
         np.testing.assert_allclose(z[dem.covered], dem.elevation[dem.covered])
         np.testing.assert_array_equal(bands["count"], dem.layers["count"])
     assert saved[1][1].covered.sum() > saved[0][1].covered.sum()  # the map grew between the two saves
+
+
+def test_a_failing_listener_is_dropped_with_an_error_and_the_map_goes_on(smoke_log, caplog):
+    live = LivePipeline.for_sequence(smoke_log, RunConfig(estimator="gm"))
+    calls = []
+
+    def broken(update):
+        calls.append(update.frame)
+        raise RuntimeError("the display went away")
+
+    live.listeners.append(broken)
+    with caplog.at_level(logging.ERROR):
+        updates = [u for u in (live.on_event(e) for e in smoke_log.events()) if u is not None]
+    assert calls == [1]
+    assert len(updates) == len(_frames(smoke_log))
+    assert sum("the display went away" in m and "the map goes on" in m for m in caplog.messages) == 1

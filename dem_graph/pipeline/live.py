@@ -19,7 +19,8 @@ speed, and the local DEM over the focus area for that speed, in the vehicle's he
   map goes on (scans placed by extrapolation; cells age).
 
 Listeners (``pipeline.listeners.append(fn)``) are called with each update: the run's live Fig. 8
-measure, the saved live maps and the viewer are listeners.
+measure, the saved live maps and the viewer are listeners. A listener that raises is logged and
+dropped; the map goes on.
 """
 
 from __future__ import annotations
@@ -285,8 +286,12 @@ class LivePipeline:
         update = LiveUpdate(self.updates, t_now, T_now.copy(), record.pose_covariance, speed, local, record.n_tracked, self._estimator_s, map_s, dict(record.timing_s), image)
         self._estimator_s = self._map_s = 0.0
         self.latest = update
-        for listener in self.listeners:
-            listener(update)
+        for listener in list(self.listeners):
+            try:
+                listener(update)
+            except Exception as exc:  # noqa: BLE001 - a viewer or a saver failing must not stop the map
+                self.listeners.remove(listener)
+                log.error("%s failed at %.3f s and is stopped (the map goes on): %s: %s", type(listener).__name__, t_now, type(exc).__name__, exc)
         return update
 
     def _speed(self, span_s: float = 0.5) -> float:
