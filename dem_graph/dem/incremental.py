@@ -118,6 +118,12 @@ class IncrementalDem:
         tx, ty = ix // T, iy // T
         slot = (iy - ty * T) * T + (ix - tx * T)
         key = tx * (1 << 32) + (ty & 0xFFFFFFFF)
+        if len(key) and key.min() == key.max():  # the usual batch: one tile
+            tile = (int(tx[0]), int(ty[0]))
+            row = self._tile_row.get(tile)
+            if row is None:
+                row = self._new_tile(tile) if create else -1
+            return row * T * T + slot if row >= 0 else np.full(len(slot), -1, dtype=np.int64)
         keys, first, inverse = np.unique(key, return_index=True, return_inverse=True)
         rows = np.empty(len(keys), dtype=np.int64)
         for j, i in enumerate(first):
@@ -178,17 +184,21 @@ class IncrementalDem:
 
     def _accumulate(self, flat: np.ndarray, w: np.ndarray, wz: np.ndarray, laser: np.ndarray, kept: np.ndarray, sign: float) -> np.ndarray:
         """Add (``sign`` 1) or subtract (-1) the measurements' terms to their cells; returns the cells touched."""
-        cells, inverse = np.unique(flat, return_inverse=True)
-        inverse = inverse.reshape(-1)
-        m = len(cells)
         kw = kept.astype(float)
         store = self._store
-        store[0, cells] += sign * np.bincount(inverse, weights=w * kw, minlength=m)
-        store[1, cells] += sign * np.bincount(inverse, weights=wz * kw, minlength=m)
-        store[2, cells] += sign * np.bincount(inverse, weights=kw, minlength=m)
-        store[3, cells] += sign * np.bincount(inverse, weights=kw * laser, minlength=m)
-        store[4, cells] += sign * np.bincount(inverse, weights=1.0 - kw, minlength=m)
-        return cells
+        lo, hi = int(flat.min()), int(flat.max())
+        if hi - lo < 8 * self.tile_cells**2:  # a few tiles made one after the other: sums over the span, no sort
+            index, m = flat - lo, hi - lo + 1
+            cells = slice(lo, hi + 1)
+        else:
+            cells, index = np.unique(flat, return_inverse=True)
+            index, m = index.reshape(-1), len(cells)
+        store[0, cells] += sign * np.bincount(index, weights=w * kw, minlength=m)
+        store[1, cells] += sign * np.bincount(index, weights=wz * kw, minlength=m)
+        store[2, cells] += sign * np.bincount(index, weights=kw, minlength=m)
+        store[3, cells] += sign * np.bincount(index, weights=kw * laser, minlength=m)
+        store[4, cells] += sign * np.bincount(index, weights=1.0 - kw, minlength=m)
+        return np.arange(lo, hi + 1)[np.bincount(index, minlength=m) > 0] if isinstance(cells, slice) else cells
 
     def remove(self, placed: Placed) -> None:
         """Take back a batch :meth:`add` placed (exactly what it added)."""

@@ -277,8 +277,12 @@ class GraphClient:
     def smoothed_poses(self, last: int | None = None) -> np.ndarray:
         """Every frame's pose (or the ``last`` frames') from the latest keyframe estimates (each frame rides on the keyframe before it)."""
         poses = self.poses
-        anchors = self._frame_anchor if last is None else (self._frame_anchor[-last:] if last > 0 else [])
-        return np.array([poses[k] @ T_rel for k, T_rel in anchors]).reshape(-1, 4, 4)
+        if last is None:  # the run's smoothed trajectory: one product per frame, as it always was
+            return np.array([poses[k] @ T_rel for k, T_rel in self._frame_anchor]).reshape(-1, 4, 4)
+        anchors = self._frame_anchor[-last:] if last > 0 else []
+        if not anchors:
+            return np.zeros((0, 4, 4))
+        return np.array([poses[k] for k, _ in anchors]) @ np.array([T_rel for _, T_rel in anchors])  # the live map's window, at once
 
     def count(self, counters: Counter) -> None:
         """The keyframes made and how late the graph's results came (median and most keyframes)."""

@@ -107,28 +107,26 @@ class NewPoint:
 class TrackedView:
     """What the front end searched in one frame, for a viewer (the paper's Fig. 6): per point its
     kind, the predicted pixel, the half size of the region searched (pixels) and the match (NaN
-    when none)."""
+    when none). Kept as the tracker's arrays, one part per search call."""
 
     t_s: float
-    kind: list[int] = field(default_factory=list)
-    uv_pred_px: list[tuple[float, float]] = field(default_factory=list)
-    search_half_size_px: list[tuple[int, int]] = field(default_factory=list)
-    uv_px: list[tuple[float, float]] = field(default_factory=list)
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
 
-    def add(self, kind: int, uv_pred, half_size, uv) -> None:
-        self.kind.append(int(kind))
-        self.uv_pred_px.append((float(uv_pred[0]), float(uv_pred[1])))
-        self.search_half_size_px.append((int(half_size[0]), int(half_size[1])))
-        self.uv_px.append((float("nan"), float("nan")) if uv is None else (float(uv[0]), float(uv[1])))
+    def add(self, kind, uv_pred, half_size, uv) -> None:
+        """One search call's points: kinds (n,), predictions (n,2), half sizes (n,2), matches (n,2) (NaN: none)."""
+        n = len(np.atleast_1d(kind))
+        self.parts.append((
+            np.asarray(kind, dtype=np.uint8).reshape(n),
+            np.asarray(uv_pred, dtype=float).reshape(n, 2),
+            np.asarray(half_size, dtype=float).reshape(n, 2),
+            np.asarray(uv, dtype=float).reshape(n, 2),
+        ))
 
     def arrays(self) -> dict[str, np.ndarray]:
-        n = len(self.kind)
-        return {
-            "kind": np.asarray(self.kind, dtype=np.uint8),
-            "uv_pred_px": np.asarray(self.uv_pred_px, dtype=float).reshape(n, 2),
-            "search_half_size_px": np.asarray(self.search_half_size_px, dtype=float).reshape(n, 2),
-            "uv_px": np.asarray(self.uv_px, dtype=float).reshape(n, 2),
-        }
+        names = ("kind", "uv_pred_px", "search_half_size_px", "uv_px")
+        if not self.parts:
+            return {"kind": np.zeros(0, dtype=np.uint8), **{k: np.zeros((0, 2)) for k in names[1:]}}
+        return {k: np.concatenate([p[i] for p in self.parts]) for i, k in enumerate(names)}
 
 
 @dataclass
@@ -192,7 +190,7 @@ class FrontEnd:
         camera pose estimate ``T_world_cam``). For the point-by-point PTPM; :meth:`track_many`
         tracks a frame's points at once, with the same outcome."""
         result = self.tracker.track(image, template, uv_pred, S_px2=S_px2, half_size_px=half_size_px)
-        self._view(t_s).add(self.tracks[point_id].kind, uv_pred, result.search_half_size_px, result.uv_px)
+        self._view(t_s).add(self.tracks[point_id].kind, uv_pred, result.search_half_size_px, (np.nan, np.nan) if result.uv_px is None else result.uv_px)
         self._record(image, point_id, result.status, result.uv_px, t_s, T_world_cam)
         return result
 
@@ -202,9 +200,9 @@ class FrontEnd:
         :meth:`PatchTracker.track_many` gives it. Counters, misses and patch refreshes follow the
         points' order, as with one :meth:`track` call per point."""
         batch = self.tracker.track_many(image, templates, uv_pred, S_px2=S_px2, half_size_px=half_size_px)
-        view = self._view(t_s)
-        for j, (point_id, status, uv) in enumerate(zip(np.asarray(point_ids).tolist(), batch.statuses(), batch.uv_px)):
-            view.add(self.tracks[point_id].kind, uv_pred[j], batch.search_half_size_px[j], uv if status is TrackStatus.OK else None)
+        ids = np.asarray(point_ids).tolist()
+        self._view(t_s).add([self.tracks[p].kind for p in ids], uv_pred, batch.search_half_size_px, batch.uv_px)  # uv_px: NaN unless matched
+        for point_id, status, uv in zip(ids, batch.statuses(), batch.uv_px):
             self._record(image, point_id, status, uv, t_s, T_world_cam)
         return batch
 

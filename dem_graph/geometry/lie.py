@@ -29,6 +29,30 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R).as_rotvec()
 
 
+def so3_log_many(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (n,3) of rotations (n,3,3), in plain numpy (much cheaper than scipy per call
+    for a few dozen); for rotations well below pi, as between two poses a frame apart."""
+    R = np.asarray(R, dtype=float)
+    angle = np.arccos(np.clip((np.einsum("nii->n", R) - 1.0) / 2.0, -1.0, 1.0))
+    v = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    s = np.sin(angle)
+    small = s < 1e-8
+    factor = np.where(small, 1.0 + angle * angle / 6.0, angle / np.where(small, 1.0, s))
+    return v * factor[:, None]
+
+
+def so3_exp_many(w: np.ndarray) -> np.ndarray:
+    """Rotations (n,3,3) of rotation vectors (n,3) (Rodrigues), in plain numpy."""
+    w = np.asarray(w, dtype=float)
+    angle = np.linalg.norm(w, axis=1)
+    small = angle < 1e-8
+    safe = np.where(small, 1.0, angle)
+    a = np.where(small, 1.0 - angle**2 / 6.0, np.sin(angle) / safe)
+    b = np.where(small, 0.5 - angle**2 / 24.0, (1.0 - np.cos(angle)) / (safe * safe))
+    K = skew(w)
+    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+
+
 def retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
     """``T * Exp(xi)`` (decoupled): rotation ``R Exp(omega)``, translation ``t + R v``."""
     out = np.array(T, dtype=float)

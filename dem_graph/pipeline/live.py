@@ -34,7 +34,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
 from dem_graph.dem.layers import Dem
@@ -45,6 +44,7 @@ from dem_graph.estimators.ekf import EkfConfig, EkfSlam
 from dem_graph.estimators.isam2 import Isam2Config, Isam2Slam
 from dem_graph.estimators.settings import SharedSettings
 from dem_graph.frontend.focus import FocusArea
+from dem_graph.geometry.lie import so3_exp_many, so3_log_many
 from dem_graph.geometry.rig import SensorRig
 from dem_graph.pipeline.config import ESTIMATORS, RunConfig
 
@@ -91,8 +91,7 @@ class PoseWindow:
         self.t_s, self.T, self.P = np.asarray(t_s, dtype=float), np.asarray(T, dtype=float), np.asarray(P, dtype=float)
         if len(self.t_s) > 1:
             R = self.T[:, :3, :3]
-            # each step's rotation as a rotation vector, once per window
-            self._step_rotvec = Rotation.from_matrix(np.einsum("nji,njk->nik", R[:-1], R[1:])).as_rotvec()
+            self._step_rotvec = so3_log_many(np.einsum("nji,njk->nik", R[:-1], R[1:]))  # each step's rotation, once per window
 
     def at(self, t_query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = np.atleast_1d(np.asarray(t_query, dtype=float))
@@ -105,7 +104,7 @@ class PoseWindow:
         T0 = self.T[lo]
         T_out = np.empty((len(t), 4, 4))
         T_out[:, 3] = (0.0, 0.0, 0.0, 1.0)
-        T_out[:, :3, :3] = T0[:, :3, :3] @ Rotation.from_rotvec(a[:, None] * self._step_rotvec[lo]).as_matrix()
+        T_out[:, :3, :3] = T0[:, :3, :3] @ so3_exp_many(a[:, None] * self._step_rotvec[lo])
         T_out[:, :3, 3] = T0[:, :3, 3] + a[:, None] * (self.T[hi][:, :3, 3] - T0[:, :3, 3])
         b = np.minimum(a, 1.0)[:, None, None]
         return T_out, (1.0 - b) * self.P[lo] + b * self.P[hi]
