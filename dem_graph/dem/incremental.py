@@ -27,7 +27,7 @@ batch fusion of them with the gate off), which the tests check to 1e-9.
 **Memory.** Cells live in square tiles of ``tile_cells`` cells a side, made where a measurement
 first lands, one after the other in one array reserved for ``reserve_tiles`` tiles whose memory
 the system provides as tiles are first written: the grid follows the vehicle, and its memory grows
-with the area mapped (48 bytes a cell), not with time or with the number of measurements. Every tile is part of the global map, which
+with the area mapped (32 bytes a cell), not with time or with the number of measurements. Every tile is part of the global map, which
 :meth:`IncrementalDem.to_dem` turns into a :class:`~dem_graph.dem.layers.Dem` at any time.
 
 ``last_update_s`` is the time of the latest measurement a cell took; a removal does not take it
@@ -47,8 +47,8 @@ from dem_graph.errors import DemGraphError
 from dem_graph.geometry.grid import GridGeometry
 
 INCREMENTAL_LAYERS = ("elevation", "variance", "count", "laser_count", "outliers", "last_update_s")
-_SUMS = ("w", "wz", "n", "n_laser", "n_out", "t_last")  # a tile's arrays, in this order
-_T_NONE = 0.0  # t_last of a cell that never took a measurement (times are stored after _T_OFFSET_S)
+_SUMS = ("w", "wz", "n", "n_laser", "n_out", "t_last")  # a cell's numbers: the first two float64, the others float32
+_T_NONE = 0.0  # t_last of a cell that never took a measurement (times are stored as t - _t0)
 
 
 @dataclass(frozen=True)
@@ -84,11 +84,15 @@ class IncrementalDem:
         self.tile_cells = int(tile_cells)
         self.gate_min_count = int(gate_min_count)
         self._tile_row: dict[tuple[int, int], int] = {}  # (tx, ty) -> the tile's block in the store
-        # (6, tiles * tile_cells**2): _SUMS, tile after tile. Reserved at once but zero-filled by the
-        # system on first touch (calloc), so only the tiles made take memory, and a growing map is
-        # never copied (a copy would leave the old array's memory to the allocator)
-        self._store = np.zeros((len(_SUMS), max(1, int(reserve_tiles)) * self.tile_cells**2))
-        self._t0: float | None = None  # times are stored as t - _t0 + 1 s: 0 is "never"
+        # tile after tile: the information sums (w, wz) in float64, the counts (n, n_laser, n_out:
+        # whole numbers, exact in float32 up to 16 million) and the time (t_last - _t0) in float32,
+        # 32 bytes a cell. Reserved at once but zero-filled by the system on first touch (calloc), so
+        # only the tiles made take memory, and a growing map is never copied (a copy would leave the
+        # old array's memory to the allocator)
+        cells = max(1, int(reserve_tiles)) * self.tile_cells**2
+        self._sums = np.zeros((2, cells))
+        self._counts = np.zeros((4, cells), dtype=np.float32)
+        self._t0: float | None = None  # times are stored as t - _t0, _t0 a second before the first: 0 is "never"
         self.n_kept = 0  # measurements in the sums now
         self.n_rejected = 0  # measurements held as outliers now
 
@@ -99,13 +103,13 @@ class IncrementalDem:
 
     @property
     def nbytes(self) -> int:
-        return self.n_tiles * len(_SUMS) * self.tile_cells**2 * 8
+        return self.n_tiles * self.tile_cells**2 * (2 * 8 + 4 * 4)
 
     @property
     def _tiles(self) -> dict[tuple[int, int], np.ndarray]:
-        """Each tile's sums (6, tile_cells**2), by (tx, ty) (views into the store)."""
+        """Each tile's numbers (6, tile_cells**2) in :data:`_SUMS`' order, by (tx, ty) (copies)."""
         size = self.tile_cells**2
-        return {key: self._store[:, row * size : (row + 1) * size] for key, row in self._tile_row.items()}
+        return {key: np.vstack([self._sums[:, row * size : (row + 1) * size], self._counts[:, row * size : (row + 1) * size]]) for key, row in self._tile_row.items()}
 
     def cell_of(self, x_m: np.ndarray, y_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global integer cell (ix, iy) of world points."""
@@ -138,10 +142,11 @@ class IncrementalDem:
     def _new_tile(self, tile: tuple[int, int]) -> int:
         size = self.tile_cells**2
         row = len(self._tile_row)
-        if (row + 1) * size > self._store.shape[1]:  # past the reserve (8192 tiles: 0.08 km2 at 10 cm and 32 cells): twice the room
-            grown = np.zeros((len(_SUMS), 2 * self._store.shape[1]))
-            grown[:, : self._store.shape[1]] = self._store
-            self._store = grown
+        if (row + 1) * size > self._sums.shape[1]:  # past the reserve (8192 tiles: 0.08 km2 at 10 cm and 32 cells): twice the room
+            n = self._sums.shape[1]
+            sums, counts = np.zeros((2, 2 * n)), np.zeros((4, 2 * n), dtype=np.float32)
+            sums[:, :n], counts[:, :n] = self._sums, self._counts
+            self._sums, self._counts = sums, counts
         self._tile_row[tile] = row
         return row
 
@@ -166,17 +171,16 @@ class IncrementalDem:
         wz = w * z
         ix, iy = self.cell_of(xyz[:, 0], xyz[:, 1])
         flat = self._flat(ix, iy, create=True)
-        store = self._store
-        W, N = store[0, flat], store[2, flat]
+        W, N = self._sums[0, flat], self._counts[0, flat]
         kept = N < self.gate_min_count
         if not np.all(kept):
             with np.errstate(invalid="ignore", divide="ignore"):
-                d = z - store[1, flat] / W
+                d = z - self._sums[1, flat] / W
                 kept |= d * d <= c.gate_sigma**2 * (var + 1.0 / W + c.gate_floor_m**2)
         self._accumulate(flat, w, wz, laser, kept, sign=1.0)
         if self._t0 is None:
             self._t0 = float(t.min()) - 1.0
-        np.maximum.at(store[5], flat[kept], np.maximum(t[kept] - self._t0, 1e-9))  # an earlier time than the first's: as the first's
+        np.maximum.at(self._counts[3], flat[kept], np.maximum(t[kept] - self._t0, 1e-3).astype(np.float32))  # an earlier time than the first's: as the first's
         n_kept = int(kept.sum())
         self.n_kept += n_kept
         self.n_rejected += len(kept) - n_kept
@@ -185,7 +189,7 @@ class IncrementalDem:
     def _accumulate(self, flat: np.ndarray, w: np.ndarray, wz: np.ndarray, laser: np.ndarray, kept: np.ndarray, sign: float) -> np.ndarray:
         """Add (``sign`` 1) or subtract (-1) the measurements' terms to their cells; returns the cells touched."""
         kw = kept.astype(float)
-        store = self._store
+        sums, counts = self._sums, self._counts
         lo, hi = int(flat.min()), int(flat.max())
         if hi - lo < 8 * self.tile_cells**2:  # a few tiles made one after the other: sums over the span, no sort
             index, m = flat - lo, hi - lo + 1
@@ -193,11 +197,11 @@ class IncrementalDem:
         else:
             cells, index = np.unique(flat, return_inverse=True)
             index, m = index.reshape(-1), len(cells)
-        store[0, cells] += sign * np.bincount(index, weights=w * kw, minlength=m)
-        store[1, cells] += sign * np.bincount(index, weights=wz * kw, minlength=m)
-        store[2, cells] += sign * np.bincount(index, weights=kw, minlength=m)
-        store[3, cells] += sign * np.bincount(index, weights=kw * laser, minlength=m)
-        store[4, cells] += sign * np.bincount(index, weights=1.0 - kw, minlength=m)
+        sums[0, cells] += sign * np.bincount(index, weights=w * kw, minlength=m)
+        sums[1, cells] += sign * np.bincount(index, weights=wz * kw, minlength=m)
+        counts[0, cells] += sign * np.bincount(index, weights=kw, minlength=m)
+        counts[1, cells] += sign * np.bincount(index, weights=kw * laser, minlength=m)
+        counts[2, cells] += sign * np.bincount(index, weights=1.0 - kw, minlength=m)
         return np.arange(lo, hi + 1)[np.bincount(index, minlength=m) > 0] if isinstance(cells, slice) else cells
 
     def remove(self, placed: Placed) -> None:
@@ -208,9 +212,9 @@ class IncrementalDem:
         if np.any(flat < 0):
             raise DemGraphError("removing measurements from a tile that holds none")
         cells = self._accumulate(flat, placed.w, placed.wz, placed.laser, placed.kept, sign=-1.0)
-        store = self._store
-        emptied = cells[store[2, cells] <= 0.5]  # counts are whole numbers: no measurement left, whatever the rounding
-        store[:4, emptied] = 0.0
+        emptied = cells[self._counts[0, cells] <= 0.5]  # counts are whole numbers: no measurement left, whatever the rounding
+        self._sums[:, emptied] = 0.0
+        self._counts[:2, emptied] = 0.0
         n_kept = int(placed.kept.sum())
         self.n_kept -= n_kept
         self.n_rejected -= len(placed) - n_kept
@@ -241,7 +245,9 @@ class IncrementalDem:
         if len(ix) and self.n_tiles:
             flat = self._flat(ix, iy, create=False)
             known = flat >= 0
-            sums[:, known] = self._store[:, flat[known]]
+            f = flat[known]
+            sums[:2, known] = self._sums[:, f]
+            sums[2:, known] = self._counts[:, f]
         return {k: v.reshape(shape) for k, v in self._layers_from_sums(sums).items()}
 
     def covering_geometry(self, margin_cells: int = 0) -> GridGeometry:

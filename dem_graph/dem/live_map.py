@@ -184,7 +184,7 @@ class LiveMap:
         R, p = T_world_local[:3, :3], T_world_local[:3, 3]
         layers = self.grid.sample(p[0] + R[0, 0] * xl + R[0, 1] * yl, p[1] + R[1, 0] * xl + R[1, 1] * yl)
         layers["elevation"] = layers["elevation"] - p[2]
-        layers["age_s"] = t_s - layers["last_update_s"]
+        layers["age_s"] = np.maximum(t_s - layers["last_update_s"], 0.0)  # times are kept in float32: a few microseconds
         dem = Dem(geometry, {k: v.astype(np.float32) for k, v in layers.items()}, frame="local", meta={"t_s": float(t_s), "T_world_local": T_world_local})
         dem.n_used = int(np.sum(layers["count"]))
         if traversability_window is not None:
