@@ -157,7 +157,8 @@ def _scans(rig, track, per_frame=2, seed=1):
     return t, ranges
 
 
-def test_live_map_after_revisions_equals_the_batch_placement_with_the_current_poses():
+def _mapped():
+    """The default rig's scans over :func:`_track`, each placed in a live map (no gate, nothing frozen) with the track's pose."""
     rig = default_rig()
     track = _track()
     t_scan, ranges = _scans(rig, track)
@@ -165,6 +166,11 @@ def test_live_map_after_revisions_equals_the_batch_placement_with_the_current_po
     for t, r in zip(t_scan, ranges, strict=True):
         T, P = track.at(np.array([t]))
         live.add_scan(t, r, T[0], P[0])
+    return rig, track, t_scan, ranges, live
+
+
+def test_live_map_after_revisions_equals_the_batch_placement_with_the_current_poses():
+    rig, track, t_scan, ranges, live = _mapped()
     # revise: frames 10..19 move (a smoother's correction), the rest stay
     rng = np.random.default_rng(4)
     T_new = track.T_world_body.copy()
@@ -184,13 +190,7 @@ def test_live_map_after_revisions_equals_the_batch_placement_with_the_current_po
 
 
 def test_frozen_scans_stay_where_they_were_placed():
-    rig = default_rig()
-    track = _track()
-    t_scan, ranges = _scans(rig, track)
-    live = LiveMap(rig, NO_GATE, window_s=1e9)
-    for t, r in zip(t_scan, ranges, strict=True):
-        T, P = track.at(np.array([t]))
-        live.add_scan(t, r, T[0], P[0])
+    rig, track, t_scan, ranges, live = _mapped()
     live.freeze_before(2.0)
     assert np.all(live.logged_times_s >= 2.0)
     shifted = PoseTrack(track.t_s, track.T_world_body @ make_pose(np.eye(3), [0.0, 0.0, 0.1]), track.covariance)
