@@ -24,12 +24,6 @@ class LaserScan:
     ranges_m: np.ndarray = field(repr=False)
     index: int = 0
 
-    def valid(self, range_min_m: float, range_max_m: float) -> np.ndarray:
-        """Mask of beams with a usable return (finite and inside the range limits)."""
-        r = self.ranges_m
-        with np.errstate(invalid="ignore"):
-            return np.isfinite(r) & (r >= range_min_m) & (r <= range_max_m)
-
 
 @dataclass(frozen=True)
 class Odometry:

@@ -36,7 +36,7 @@ back. (Times earlier than the first measurement's by over a second are recorded 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -72,6 +72,14 @@ class Placed:
         b = np.zeros(0, dtype=bool)
         return cls(i, i, z, z, b, b)
 
+    @classmethod
+    def concatenate(cls, parts: list[Placed]) -> Placed:
+        return cls(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)))
+
+    def part(self, start: int, end: int) -> Placed:
+        """Measurements ``start`` to ``end`` (excluded)."""
+        return Placed(*(getattr(self, f.name)[start:end] for f in fields(self)))
+
 
 class IncrementalDem:
     """The global map as per-cell information sums in tiles (see the module)."""
@@ -105,11 +113,10 @@ class IncrementalDem:
     def nbytes(self) -> int:
         return self.n_tiles * self.tile_cells**2 * (2 * 8 + 4 * 4)
 
-    @property
-    def _tiles(self) -> dict[tuple[int, int], np.ndarray]:
-        """Each tile's numbers (6, tile_cells**2) in :data:`_SUMS`' order, by (tx, ty) (copies)."""
-        size = self.tile_cells**2
-        return {key: np.vstack([self._sums[:, row * size : (row + 1) * size], self._counts[:, row * size : (row + 1) * size]]) for key, row in self._tile_row.items()}
+    def _blocks(self) -> tuple[np.ndarray, np.ndarray]:
+        """The tiles made: sums (2, tiles, cells) and counts (4, tiles, cells), views in row order."""
+        used = self.n_tiles * self.tile_cells**2
+        return self._sums[:, :used].reshape(2, self.n_tiles, -1), self._counts[:, :used].reshape(4, self.n_tiles, -1)
 
     def cell_of(self, x_m: np.ndarray, y_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global integer cell (ix, iy) of world points."""
@@ -123,21 +130,19 @@ class IncrementalDem:
         slot = (iy - ty * T) * T + (ix - tx * T)
         key = tx * (1 << 32) + (ty & 0xFFFFFFFF)
         if len(key) and key.min() == key.max():  # the usual batch: one tile
-            tile = (int(tx[0]), int(ty[0]))
-            row = self._tile_row.get(tile)
-            if row is None:
-                row = self._new_tile(tile) if create else -1
-            return row * T * T + slot if row >= 0 else np.full(len(slot), -1, dtype=np.int64)
-        keys, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-        rows = np.empty(len(keys), dtype=np.int64)
-        for j, i in enumerate(first):
-            tile = (int(tx[i]), int(ty[i]))
-            row = self._tile_row.get(tile)
-            if row is None:
-                row = self._new_tile(tile) if create else -1
-            rows[j] = row
-        row = rows[inverse.reshape(-1)]
+            row = np.full(len(key), self._row((int(tx[0]), int(ty[0])), create), dtype=np.int64)
+        else:
+            _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+            rows = np.array([self._row((int(tx[i]), int(ty[i])), create) for i in first], dtype=np.int64)
+            row = rows[inverse.reshape(-1)]
         return np.where(row >= 0, row * T * T + slot, -1)
+
+    def _row(self, tile: tuple[int, int], create: bool) -> int:
+        """The tile's block in the store; a new one if ``create`` and it has none, else -1."""
+        row = self._tile_row.get(tile)
+        if row is None:
+            row = self._new_tile(tile) if create else -1
+        return row
 
     def _new_tile(self, tile: tuple[int, int]) -> int:
         size = self.tile_cells**2
@@ -250,16 +255,17 @@ class IncrementalDem:
             sums[2:, known] = self._counts[:, f]
         return {k: v.reshape(shape) for k, v in self._layers_from_sums(sums).items()}
 
-    def covering_geometry(self, margin_cells: int = 0) -> GridGeometry:
+    def covering_geometry(self) -> GridGeometry:
         """The north-up grid over every tile with a measurement, cell edges on multiples of the resolution."""
-        keys = [k for k, tile in self._tiles.items() if np.any(tile[2] > 0.5) or np.any(tile[4] > 0.5)]
-        if not keys:
+        _, counts = self._blocks()
+        held = np.any((counts[0] > 0.5) | (counts[2] > 0.5), axis=1)  # a measurement kept or held as an outlier
+        if not np.any(held):
             raise DemGraphError("the live map holds no measurement yet: nothing to save")
-        tx = np.array([k[0] for k in keys])
-        ty = np.array([k[1] for k in keys])
+        tiles = np.array(list(self._tile_row), dtype=np.int64).reshape(-1, 2)[held]  # dict order is row order
+        tx, ty = tiles[:, 0], tiles[:, 1]
         T, r = self.tile_cells, self.resolution_m
-        x0, x1 = (tx.min() * T - margin_cells) * r, ((tx.max() + 1) * T + margin_cells) * r
-        y0, y1 = (ty.min() * T - margin_cells) * r, ((ty.max() + 1) * T + margin_cells) * r
+        x0, x1 = tx.min() * T * r, (tx.max() + 1) * T * r
+        y0, y1 = ty.min() * T * r, (ty.max() + 1) * T * r
         n_cols, n_rows = int(round((x1 - x0) / r)), int(round((y1 - y0) / r))
         return GridGeometry(float(x0), float(y1), r, n_rows, n_cols)
 
@@ -268,8 +274,7 @@ class IncrementalDem:
         geometry = geometry or self.covering_geometry()
         X, Y = geometry.cell_centers_xy()
         layers = self.sample(X, Y)
-        dem = Dem(geometry, {k: v.astype(np.float32) for k, v in layers.items()}, n_measurements=self.n_kept + self.n_rejected, n_used=self.n_kept)
-        return dem
+        return Dem(geometry, {k: v.astype(np.float32) for k, v in layers.items()}, n_measurements=self.n_kept + self.n_rejected, n_used=self.n_kept)
 
 
 __all__ = ["INCREMENTAL_LAYERS", "IncrementalDem", "Placed"]

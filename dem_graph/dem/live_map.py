@@ -28,9 +28,9 @@ import numpy as np
 from dem_graph.dem.fusion import FusionConfig
 from dem_graph.dem.incremental import IncrementalDem, Placed
 from dem_graph.dem.layers import Dem
-from dem_graph.dem.returns import GroundReturns, ReturnSource, place_returns, valid_beams
+from dem_graph.dem.returns import GroundReturns, ReturnSource, place_returns, returns_in_body
 from dem_graph.dem.traversability import add_traversability
-from dem_graph.dem.views import local_frame
+from dem_graph.dem.views import local_frame, local_to_world_xy
 from dem_graph.errors import DemGraphError
 from dem_graph.geometry.grid import GridGeometry
 from dem_graph.geometry.rig import SensorRig
@@ -47,14 +47,6 @@ class _LoggedScan:
     d_body: np.ndarray  # (N,3) their beam directions
     T_world_body: np.ndarray  # the pose they are placed with now
     placed: Placed
-
-
-def _concatenate(parts: list[Placed]) -> Placed:
-    return Placed(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("ix", "iy", "w", "wz", "laser", "kept")))
-
-
-def _slice(placed: Placed, start: int, end: int) -> Placed:
-    return Placed(*(getattr(placed, f)[start:end] for f in ("ix", "iy", "w", "wz", "laser", "kept")))
 
 
 def pose_moved(T_old: np.ndarray, T_new: np.ndarray, tolerance_m: float, tolerance_rad: float) -> np.ndarray:
@@ -85,9 +77,7 @@ class LiveMap:
         self.tolerance_m = float(tolerance_m)
         self.tolerance_rad = float(tolerance_rad)
         self._log: deque[_LoggedScan] = deque()
-        self._d_body = rig.laser.beam_directions() @ rig.T_body_laser[:3, :3].T  # (beams, 3), once
-        self.n_beams = len(self._d_body)
-        self.t_latest_s = -np.inf  # the latest measurement's time
+        self.n_beams = len(rig.laser.beam_directions())
         self.counters = {"scans": 0, "returns": 0, "returns_moved": 0, "scans_moved": 0, "revisions": 0, "map_points": 0}
 
     # --- measurements ------------------------------------------------------------------------
@@ -98,15 +88,13 @@ class LiveMap:
         r = np.asarray(ranges_m, dtype=float).ravel()
         if len(r) != self.n_beams:
             raise DemGraphError(f"laser scan at {t_s:.6f} s has {len(r)} beams; the rig's laser has {self.n_beams}")
-        beams = np.flatnonzero(valid_beams(r, self.rig))
-        d_body = self._d_body[beams]
-        p_body = r[beams, None] * d_body + self.rig.T_body_laser[:3, 3]
+        beams = np.flatnonzero(self.rig.laser.valid_ranges(r))
+        p_body, d_body = returns_in_body(r[beams], beams, self.rig)
         T = np.asarray(T_world_body, dtype=float)
         placed = self._place(t_s, p_body, d_body, T, np.asarray(covariance, dtype=float))
         self._log.append(_LoggedScan(float(t_s), p_body, d_body, T.copy(), placed))
         self.counters["scans"] += 1
         self.counters["returns"] += len(placed)
-        self.t_latest_s = max(self.t_latest_s, float(t_s))
         return len(placed)
 
     def _place(self, t_s: float, p_body: np.ndarray, d_body: np.ndarray, T: np.ndarray, P: np.ndarray) -> Placed:
@@ -144,7 +132,7 @@ class LiveMap:
         if len(index) == 0:
             return 0
         moved = [scans[i] for i in index]
-        self.grid.remove(_concatenate([s.placed for s in moved]))
+        self.grid.remove(Placed.concatenate([s.placed for s in moved]))
         sizes = np.array([len(s.p_body) for s in moved])
         scan_of = np.repeat(np.arange(len(moved)), sizes)
         T = T_new[index][scan_of]
@@ -161,7 +149,7 @@ class LiveMap:
         ends = np.cumsum(np.bincount(scan_of[ok], minlength=len(moved)))
         starts = ends - np.bincount(scan_of[ok], minlength=len(moved))
         for j, s in enumerate(moved):
-            s.placed = _slice(placed, starts[j], ends[j])
+            s.placed = placed.part(starts[j], ends[j])
             s.T_world_body = np.array(T_new[index[j]], dtype=float)
         n = len(placed)
         self.counters["scans_moved"] += len(moved)
@@ -169,7 +157,8 @@ class LiveMap:
         return n
 
     def freeze_before(self, t_s: float) -> None:
-        """Scans before ``t_s`` leave the revision log (they stay in the map as they are)."""
+        """Scans before ``t_s`` leave the revision log (they stay in the map as they are); the
+        caller freezes at ``window_s`` before its latest pose."""
         while self._log and self._log[0].t_s < t_s:
             self._log.popleft()
 
@@ -180,10 +169,8 @@ class LiveMap:
         ``traversability_window`` is None) the traversability layers."""
         T_world_local = local_frame(T_world_body)
         geometry = GridGeometry.covering(x_range_m[0], -half_width_m, x_range_m[1], half_width_m, self.fusion.resolution_m)
-        xl, yl = geometry.cell_centers_xy()
-        R, p = T_world_local[:3, :3], T_world_local[:3, 3]
-        layers = self.grid.sample(p[0] + R[0, 0] * xl + R[0, 1] * yl, p[1] + R[1, 0] * xl + R[1, 1] * yl)
-        layers["elevation"] = layers["elevation"] - p[2]
+        layers = self.grid.sample(*local_to_world_xy(T_world_local, *geometry.cell_centers_xy()))
+        layers["elevation"] = layers["elevation"] - T_world_local[2, 3]
         layers["age_s"] = np.maximum(t_s - layers["last_update_s"], 0.0)  # times are kept in float32: a few microseconds
         dem = Dem(geometry, {k: v.astype(np.float32) for k, v in layers.items()}, frame="local", meta={"t_s": float(t_s), "T_world_local": T_world_local})
         dem.n_used = int(np.sum(layers["count"]))

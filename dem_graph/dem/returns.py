@@ -118,14 +118,6 @@ class GroundReturns:
         return self.select(self.t_s <= t_s)
 
 
-def valid_beams(ranges_m: np.ndarray, rig: SensorRig) -> np.ndarray:
-    """Mask of the beams with a usable return: finite and inside the laser's range limits."""
-    laser = rig.laser
-    r = np.asarray(ranges_m, dtype=float)
-    with np.errstate(invalid="ignore"):
-        return np.isfinite(r) & (r >= laser.range_min_m) & (r <= laser.range_max_m)
-
-
 def returns_in_body(ranges_m: np.ndarray, beam_idx: np.ndarray, rig: SensorRig) -> tuple[np.ndarray, np.ndarray]:
     """Returns (ranges of beams ``beam_idx``) in the body frame: points (N,3) and beam directions (N,3)."""
     T_body_laser = rig.T_body_laser
@@ -171,7 +163,7 @@ def laser_returns_world(scan_t_s: np.ndarray, ranges_m: np.ndarray, rig: SensorR
     if not np.all(in_span):
         # usual at the ends of a log (a scan after the last frame); the count says if it is more
         log.info("%d of %d scans lie outside the estimated trajectory's time span: left out of the DEM", int((~in_span).sum()), len(scan_t_s))
-    valid = valid_beams(ranges_m, rig) & in_span[:, None]
+    valid = laser.valid_ranges(ranges_m) & in_span[:, None]
     n_invalid = int((~valid[in_span]).sum())
     if n_invalid:
         log.info("%d laser beams without a usable return (NaN or out of range) left out", n_invalid)
@@ -196,4 +188,4 @@ def map_point_returns(xyz_m: np.ndarray, covariance: np.ndarray, created_t_s: np
     return GroundReturns(xyz, cov[:, 2, 2].copy(), t, np.full(len(t), ReturnSource.MAP_POINT, dtype=np.uint8))
 
 
-__all__ = ["GroundReturns", "PoseTrack", "ReturnSource", "laser_returns_world", "map_point_returns", "place_returns", "returns_in_body", "valid_beams"]
+__all__ = ["GroundReturns", "PoseTrack", "ReturnSource", "laser_returns_world", "map_point_returns", "place_returns", "returns_in_body"]

@@ -29,16 +29,27 @@ def global_dem(returns: GroundReturns, config: FusionConfig | None = None, geome
     return add_traversability(fuse(returns, geometry, config), traversability_window)
 
 
+def heading_frame(position_m, yaw_rad: float) -> np.ndarray:
+    """``T_world_local`` of a heading frame: origin at ``position_m``, x at ``yaw_rad`` from the
+    world's x, z up."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    out = np.eye(4)
+    out[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    out[:3, 3] = position_m
+    return out
+
+
 def local_frame(T_world_body: np.ndarray) -> np.ndarray:
     """``T_world_local``: at the body's position, x along its heading, z up."""
     T = np.asarray(T_world_body, dtype=float)
     forward = T[:3, 0]
-    yaw = np.arctan2(forward[1], forward[0])
-    c, s = np.cos(yaw), np.sin(yaw)
-    out = np.eye(4)
-    out[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
-    out[:3, 3] = T[:3, 3]
-    return out
+    return heading_frame(T[:3, 3], np.arctan2(forward[1], forward[0]))
+
+
+def local_to_world_xy(T_world_local: np.ndarray, x_local_m: np.ndarray, y_local_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World (x, y) of points at (x, y) in a heading frame (any shape)."""
+    T = T_world_local
+    return T[0, 3] + T[0, 0] * x_local_m + T[0, 1] * y_local_m, T[1, 3] + T[1, 0] * x_local_m + T[1, 1] * y_local_m
 
 
 def speed_at(poses: PoseTrack, t_s: float, span_s: float = 0.5) -> float:
@@ -92,4 +103,4 @@ def local_dem(
     return dem
 
 
-__all__ = ["global_dem", "local_dem", "local_frame", "speed_at", "to_local"]
+__all__ = ["global_dem", "heading_frame", "local_dem", "local_frame", "local_to_world_xy", "speed_at", "to_local"]

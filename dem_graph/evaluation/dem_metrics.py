@@ -16,7 +16,7 @@ from dem_graph.config_types import StrictModel
 from dem_graph.dem.fusion import FusionConfig
 from dem_graph.dem.layers import Dem
 from dem_graph.dem.returns import GroundReturns, PoseTrack
-from dem_graph.dem.views import local_dem, local_frame
+from dem_graph.dem.views import local_dem, local_frame, local_to_world_xy
 from dem_graph.evaluation.results import MetricsModel, Number
 from dem_graph.geometry.grid import ElevationGrid
 from dem_graph.geometry.trajectory import Trajectory
@@ -163,11 +163,9 @@ class LocalErrorSummary(MetricsModel):
 
 def _truth_in_local(truth: ElevationGrid, T_world_local: np.ndarray, x_local: np.ndarray, y_local: np.ndarray) -> np.ndarray:
     """Truth heights at local cell centres, relative to the local frame's origin height."""
-    T = T_world_local
-    xw = T[0, 3] + T[0, 0] * x_local + T[0, 1] * y_local
-    yw = T[1, 3] + T[1, 0] * x_local + T[1, 1] * y_local
+    xw, yw = local_to_world_xy(T_world_local, x_local, y_local)
     with np.errstate(invalid="ignore"):
-        return _truth_at(truth, xw.ravel(), yw.ravel()).reshape(x_local.shape) - T[2, 3]
+        return _truth_at(truth, xw.ravel(), yw.ravel()).reshape(x_local.shape) - T_world_local[2, 3]
 
 
 def local_dem_errors(dem: Dem, truth: ElevationGrid, truth_trajectory: Trajectory | None = None) -> tuple[float, float, float, float, float]:

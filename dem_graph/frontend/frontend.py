@@ -136,7 +136,8 @@ class FrontEnd:
     tracker: PatchTracker = field(init=False)
     tracks: dict[int, PointTrack] = field(default_factory=dict)
     counters: Counter = field(default_factory=Counter)
-    last_view: TrackedView | None = None  # the latest frame's searches (a viewer's)
+    record_view: bool = False  # keep each frame's searches in last_view (a viewer asks for it)
+    last_view: TrackedView | None = None  # the latest frame's searches, when recorded
     _next_id: int = 0
 
     def __post_init__(self):
@@ -190,7 +191,8 @@ class FrontEnd:
         camera pose estimate ``T_world_cam``). For the point-by-point PTPM; :meth:`track_many`
         tracks a frame's points at once, with the same outcome."""
         result = self.tracker.track(image, template, uv_pred, S_px2=S_px2, half_size_px=half_size_px)
-        self._view(t_s).add(self.tracks[point_id].kind, uv_pred, result.search_half_size_px, (np.nan, np.nan) if result.uv_px is None else result.uv_px)
+        if self.record_view:
+            self._view(t_s).add(self.tracks[point_id].kind, uv_pred, result.search_half_size_px, (np.nan, np.nan) if result.uv_px is None else result.uv_px)
         self._record(image, point_id, result.status, result.uv_px, t_s, T_world_cam)
         return result
 
@@ -201,7 +203,8 @@ class FrontEnd:
         points' order, as with one :meth:`track` call per point."""
         batch = self.tracker.track_many(image, templates, uv_pred, S_px2=S_px2, half_size_px=half_size_px)
         ids = np.asarray(point_ids).tolist()
-        self._view(t_s).add([self.tracks[p].kind for p in ids], uv_pred, batch.search_half_size_px, batch.uv_px)  # uv_px: NaN unless matched
+        if self.record_view:
+            self._view(t_s).add([self.tracks[p].kind for p in ids], uv_pred, batch.search_half_size_px, batch.uv_px)  # uv_px: NaN unless matched
         for point_id, status, uv in zip(ids, batch.statuses(), batch.uv_px):
             self._record(image, point_id, status, uv, t_s, T_world_cam)
         return batch
@@ -263,7 +266,7 @@ class FrontEnd:
         current body frame (the paper's Eq. 2 with the spline-interpolated pose)."""
         budget = self._budget(PointKind.LASER)
         laser = self.rig.laser
-        valid = np.isfinite(ranges_m) & (ranges_m >= laser.range_min_m) & (ranges_m <= laser.range_max_m)
+        valid = laser.valid_ranges(ranges_m)
         if budget == 0 or not valid.any():
             return []
         dirs = laser.beam_directions()

@@ -111,6 +111,14 @@ class LaserSpec(StrictModel):
         """(B,3) unit beam directions in the laser frame."""
         return self.beams.directions()
 
+    def valid_ranges(self, ranges_m: np.ndarray, range_max_m: float | None = None) -> np.ndarray:
+        """Mask of the ranges that are returns: finite and inside the range limits (the upper one
+        lowered to ``range_max_m`` if given). NaN is "no return"."""
+        r = np.asarray(ranges_m)  # compared in its own precision (the simulator's are float32)
+        top = self.range_max_m if range_max_m is None else min(self.range_max_m, range_max_m)
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(r) & (r >= self.range_min_m) & (r <= top)
+
 
 class OdometrySpec(StrictModel):
     """Wheel odometry: rate and noise densities per square root of distance travelled."""

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from dem_graph.dem.layers import Dem
+from dem_graph.dem.views import heading_frame
 from dem_graph.errors import DatasetError, DemGraphError
 from dem_graph.geometry.grid import GridGeometry
 
@@ -91,38 +92,40 @@ def write_live_maps(path: str | Path, times_s: np.ndarray, data: np.ndarray, lay
     return path
 
 
-def read_live_maps(path: str | Path):
-    """The saved live maps as an ``xarray.Dataset``; :class:`DatasetError` naming the file if it cannot be read."""
+def _open(path: Path):
+    """The saved live maps, opened lazily (an ``xarray.Dataset``: close it); :class:`DatasetError` naming the file if it cannot be read."""
     import xarray as xr
 
-    path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "no saved live maps (the run saved none: live_map.save_every_n_frames 0, or an older run)")
     try:
-        return xr.load_dataset(path, engine="scipy")
+        return xr.open_dataset(path, engine="scipy")
     except Exception as exc:  # noqa: BLE001 - any reader failure is a corrupt file to the user
         raise DatasetError(path, f"not a readable live-maps file ({type(exc).__name__}: {exc})") from None
 
 
+def read_live_maps(path: str | Path):
+    """The saved live maps as an ``xarray.Dataset`` in memory; :class:`DatasetError` naming the file if it cannot be read."""
+    with _open(Path(path)) as ds:
+        return ds.load()
+
+
 def live_map_at(path: str | Path, t_s: float) -> Dem:
-    """The saved live map of the latest time at or before ``t_s`` (``meta['t_s']`` says which)."""
-    ds = read_live_maps(path)
-    times = ds["time"].values
-    i = int(np.searchsorted(times, t_s, side="right")) - 1
-    if i < 0:
-        raise DemGraphError(f"no live map was saved at or before {t_s:.3f} s (the first is at {times[0]:.3f} s)")
-    x, y = ds["x"].values, ds["y"].values
-    r = float(ds.attrs["resolution_m"])
+    """The saved live map of the latest time at or before ``t_s`` (``meta['t_s']`` says which); only that map is read."""
+    with _open(Path(path)) as ds:
+        times = ds["time"].values
+        i = int(np.searchsorted(times, t_s, side="right")) - 1
+        if i < 0:
+            raise DemGraphError(f"no live map was saved at or before {t_s:.3f} s (the first is at {times[0]:.3f} s)")
+        x, y = ds["x"].values, ds["y"].values
+        r = float(ds.attrs["resolution_m"])
+        at = ds.isel(time=i)
+        layers = {name: at[name].values.astype(np.float32) for name in json.loads(ds.attrs["layers"])}
+        xw, yw, zw, yaw = (float(at[name].values) for name in _POSE_VARS)
     geometry = GridGeometry(float(x[0] - r / 2), float(y[0] + r / 2), r, len(y), len(x))
-    layers = {name: ds[name].values[i].astype(np.float32) for name in json.loads(ds.attrs["layers"])}
     if "age_s" in layers:
         layers["last_update_s"] = (float(times[i]) - layers["age_s"]).astype(np.float32)
-    xw, yw, zw, yaw = (float(ds[name].values[i]) for name in _POSE_VARS)
-    c, s = np.cos(yaw), np.sin(yaw)
-    T = np.eye(4)
-    T[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
-    T[:3, 3] = [xw, yw, zw]
-    return Dem(geometry, layers, frame="local", meta={"t_s": float(times[i]), "T_world_local": T})
+    return Dem(geometry, layers, frame="local", meta={"t_s": float(times[i]), "T_world_local": heading_frame([xw, yw, zw], yaw)})
 
 
 __all__ = ["LiveMapWriter", "SAVED_LAYERS", "live_map_at", "read_live_maps", "write_live_maps"]

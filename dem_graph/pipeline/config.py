@@ -60,7 +60,7 @@ class LiveMapConfig(StrictModel):
     save_x_range_m: tuple[float, float] = Field((0.0, 8.0), description="the saved local maps' window ahead of the body origin, metres (from, to)")
     save_width_m: float = Field(6.0, gt=0, description="the saved local maps' width, metres")
     camera_silent_s: float = Field(1.0, gt=0, description="warn when no camera frame has come for this long (the map goes on with extrapolated poses)")
-    laser_silent_s: float = Field(2.0, gt=0, description="warn when no laser scan has come for this long (the map stops growing)")
+    laser_silent_s: float = Field(2.0, gt=0, description="warn when no laser scan has come for this long (no laser return reaches the map; its cells age)")
 
 
 class RunConfig(SharedSettings):

@@ -144,7 +144,7 @@ class LivePipeline:
         self._images: deque[tuple[float, np.ndarray]] = deque(maxlen=4)  # the frames the estimator may still hold
         self._estimator_s = 0.0
         self._map_s = 0.0
-        self._warned_silent = {"camera": False, "laser": False}
+        self._laser_silence_warned = False  # once per silence
         self.counters = {"events_out_of_order": 0, "scans_wrong_length": 0, "scans_nonfinite": 0, "camera_silences": 0, "laser_silences": 0}
 
     @classmethod
@@ -193,12 +193,12 @@ class LivePipeline:
             self.counters["scans_wrong_length"] += 1
             log.warning("laser scan %d at %.6f s has %d ranges, the rig's laser %d beams: skipped", event.index, event.t_s, len(ranges), self.map.n_beams)
             return None
-        bad = ~np.isfinite(ranges)
-        if np.any(bad & ~np.isnan(ranges)):  # NaN is "no return"; an infinity or worse is worth a word
+        n_inf = int(np.isinf(ranges).sum())
+        if n_inf:  # NaN is "no return"; an infinity is worth a word
             self.counters["scans_nonfinite"] += 1
             if self.counters["scans_nonfinite"] == 1 or self.counters["scans_nonfinite"] % 100 == 0:
-                log.warning("laser scan %d at %.6f s has %d infinite ranges: those beams are left out (%d such scans so far)", event.index, event.t_s, int(np.sum(np.isinf(ranges))), self.counters["scans_nonfinite"])
-        self._warned_silent["laser"] = False
+                log.warning("laser scan %d at %.6f s has %d infinite ranges: those beams are left out (%d such scans so far)", event.index, event.t_s, n_inf, self.counters["scans_nonfinite"])
+        self._laser_silence_warned = False
         update = self._timed(self.estimator.on_scan, event)
         t0 = time.perf_counter()
         T, P = self._window.at(np.array([event.t_s]))
@@ -246,9 +246,9 @@ class LivePipeline:
             self.counters["camera_silences"] += 1
             log.warning("no camera frame for %.2f s (until %.3f s): laser scans were placed with extrapolated poses", t_s - last_frame, t_s)
         last_scan = self._last_t["scan"]
-        if math.isfinite(last_scan) and t_s - last_scan > c.laser_silent_s and not self._warned_silent["laser"]:
+        if math.isfinite(last_scan) and t_s - last_scan > c.laser_silent_s and not self._laser_silence_warned:
             self.counters["laser_silences"] += 1
-            self._warned_silent["laser"] = True
+            self._laser_silence_warned = True
             log.warning("no laser scan for %.2f s (since %.3f s): no laser return goes into the map, its cells age", t_s - last_scan, last_scan)
 
     def _last_frame_t(self) -> float | None:
@@ -258,7 +258,7 @@ class LivePipeline:
         est = self.estimator
         record = est.last_frame
         t_now = record.t_s
-        window_s = self.config.live_map.revision_window_s
+        window_s = self.map.window_s
         t0 = time.perf_counter()
         self._frame_t.append(t_now)
         while len(self._frame_t) > 2 and self._frame_t[1] < t_now - window_s:

@@ -14,8 +14,10 @@ run's metrics and folder.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 from dem_graph.datasets.base import GroundTruth
+from dem_graph.dem.layers import Dem
 from dem_graph.evaluation.dem_metrics import (
     HeightErrors,
     LocalErrorConfig,
@@ -118,12 +120,15 @@ class LiveMapRecorder:
 
 @dataclass
 class LiveRun:
-    """The live parts of a run: the pipeline, and its meter and recorder when it has them."""
+    """The live parts of a run: the pipeline, its memory probe, and its meter and recorder when it
+    has them. Once the run is over, :attr:`final_map` is the map as built (made once)."""
 
     pipeline: LivePipeline
+    truth: GroundTruth | None
+    window: LocalErrorConfig
+    memory: MemoryProbe
     meter: LiveErrorMeter | None = None
     recorder: LiveMapRecorder | None = None
-    memory: MemoryProbe | None = None
 
     @classmethod
     def attach(cls, pipeline: LivePipeline, truth: GroundTruth | None, window: LocalErrorConfig) -> LiveRun:
@@ -131,20 +136,24 @@ class LiveRun:
         recorder = LiveMapRecorder(pipeline, pipeline.config.live_map) if pipeline.config.live_map.save_every_n_frames else None
         memory = MemoryProbe()
         pipeline.listeners.extend(x for x in (meter, recorder, memory) if x is not None)
-        return cls(pipeline, meter, recorder, memory)
+        return cls(pipeline, truth, window, memory, meter, recorder)
 
-    def metrics(self, truth: GroundTruth | None, window: LocalErrorConfig) -> LiveMapMetrics:
+    @cached_property
+    def final_map(self) -> Dem | None:
+        """The whole live map with its traversability, as it stands at the end (None if empty)."""
+        p = self.pipeline
+        return p.map.global_dem(p.config.dem.traversability_window) if p.map.grid.n_kept else None
+
+    def metrics(self) -> LiveMapMetrics:
         p = self.pipeline
         m = p.map
         timing = TimingStats.from_seconds(p.map_timing_s)
         whole = TimingStats.from_seconds(p.frame_timing_s)
-        covered = 0
+        dem, truth = self.final_map, self.truth
+        covered = int(dem.covered.sum()) if dem is not None else 0
         height = None
-        if m.grid.n_kept:
-            dem = m.grid.to_dem()
-            covered = int(dem.covered.sum())
-            if truth is not None and truth.elevation is not None:
-                height = height_errors(dem.elevation, truth_at_cells(dem, truth.elevation))
+        if dem is not None and truth is not None and truth.elevation is not None:
+            height = height_errors(dem.elevation, truth_at_cells(dem, truth.elevation))
         c = m.counters
         bad = {k: v for k, v in p.counters.items() if v}
         return LiveMapMetrics(
@@ -152,7 +161,7 @@ class LiveRun:
             update_p95_ms=timing.p95_ms,
             whole_frame_median_ms=whole.median_ms,
             whole_frame_p95_ms=whole.p95_ms,
-            resident_memory_mb=self.memory.summary() if self.memory is not None else None,
+            resident_memory_mb=self.memory.summary(),
             scans=c["scans"],
             returns=c["returns"],
             returns_moved=c["returns_moved"],
@@ -162,7 +171,7 @@ class LiveRun:
             memory_mb=m.grid.nbytes / 2**20,
             covered_cells=covered,
             height_error=height,
-            local_window=self.meter.series().summary(window) if self.meter is not None and self.meter.times else None,
+            local_window=self.meter.series().summary(self.window) if self.meter is not None and self.meter.times else None,
             bad_input=bad or None,
             saved_maps=len(self.recorder.writer) if self.recorder is not None else 0,
         )

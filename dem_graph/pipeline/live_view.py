@@ -28,6 +28,9 @@ class ViewerListener:
     def __init__(self, pipeline: LivePipeline, options: ViewerOptions, truth: GroundTruth | None = None):
         self.pipeline = pipeline
         self.viewer = RerunViewer(pipeline.name, spawn=options.spawn, record_path=options.record_path)
+        frontend = getattr(pipeline.estimator, "frontend", None)
+        if frontend is not None:
+            frontend.record_view = True  # the searches of each frame, for the image
         if truth is not None:
             self.viewer.log_truth(truth.trajectory.positions_xyz)
 

@@ -115,7 +115,7 @@ def run_estimator(sequence: Sequence, config: RunConfig | None = None, with_dem:
     run = RunResult(result, config, error=error, elapsed_s=time.perf_counter() - start, live=live)
     run.metrics = compute_metrics(sequence, result, error, run.elapsed_s)
     if result.frames:
-        run.metrics.live_map = live.metrics(sequence.ground_truth, config.local_error)
+        run.metrics.live_map = live.metrics()
     if with_dem and result.frames:
         run.dem = run_dem(run, sequence)
     return run

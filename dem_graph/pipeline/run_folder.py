@@ -45,8 +45,7 @@ from dem_graph.io.tum import write_tum
 from dem_graph.pipeline.config import RunConfig, run_config
 from dem_graph.pipeline.live_run import LiveRun
 from dem_graph.pipeline.result import RunResult
-from dem_graph.pipeline.run_dem import RunDem, focus_local_dem, ground_returns, make_run_dem, pose_track_from_result
-from dem_graph.pipeline.run_dem import require_time as _require_time
+from dem_graph.pipeline.run_dem import RunDem, focus_local_dem, ground_returns, make_run_dem, pose_track_from_result, require_time
 from dem_graph.viz.dem_figure import write_dem_png
 
 TRAJECTORY_TUM = "trajectory.tum"
@@ -308,7 +307,7 @@ def live_map_of_run(run_dir: str | Path, t_s: float) -> Dem:
     path = run_dir / LIVE_MAPS_NC
     if not path.is_file():
         raise DatasetError(path, "not found: the run saved no live map (an older run, or live_map.save_every_n_frames: 0); --hindsight makes one from its poses")
-    _require_time(load_run_poses(run_dir), t_s)
+    require_time(load_run_poses(run_dir), t_s)
     return live_map_at(path, t_s)
 
 
@@ -343,8 +342,8 @@ def write_live_outputs(live: LiveRun, out_dir: str | Path) -> dict[str, Path]:
     (``live_maps.nc``) and, with truth, its Fig. 8 measure frame by frame (``live_dem_error.csv``)."""
     out_dir = Path(out_dir)
     paths = {}
-    if live.pipeline.map.grid.n_kept:
-        paths["live_map"] = write_dem_geotiff(out_dir / LIVE_MAP_TIF, live.pipeline.map.global_dem())
+    if live.final_map is not None:
+        paths["live_map"] = write_dem_geotiff(out_dir / LIVE_MAP_TIF, live.final_map)
     if live.recorder is not None:
         written = live.recorder.write(out_dir / LIVE_MAPS_NC)
         if written is not None:

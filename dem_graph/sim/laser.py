@@ -16,6 +16,5 @@ def cast_scan(scene: TerrainScene, T_world_laser: np.ndarray, laser: LaserSpec, 
     ranges = hits.t_hit_m.copy()
     if rng is not None and laser.range_sigma_m > 0:
         ranges += laser.range_sigma_m * rng.standard_normal(len(ranges))
-    with np.errstate(invalid="ignore"):
-        ranges[~np.isfinite(ranges) | (ranges < laser.range_min_m) | (ranges > laser.range_max_m)] = np.nan
+    ranges[~laser.valid_ranges(ranges)] = np.nan
     return ranges.astype(np.float32)

@@ -17,7 +17,7 @@ def _laser_points_world(sequence: Sequence, scans: list[LaserScan], max_range_m:
     dirs = rig.laser.beam_directions()
     points = []
     for scan in scans:
-        ok = scan.valid(rig.laser.range_min_m, min(rig.laser.range_max_m, max_range_m))
+        ok = rig.laser.valid_ranges(scan.ranges_m, max_range_m)
         p_laser = dirs[ok] * scan.ranges_m[ok, None]
         points.append(transform_points(gt.at(scan.t_s) @ rig.T_body_laser, p_laser))
     return np.concatenate(points) if points else np.zeros((0, 3))

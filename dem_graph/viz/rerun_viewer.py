@@ -120,12 +120,15 @@ class RerunViewer:
         s.log("world/map_points", rr.Points3D(np.asarray(points_xyz, dtype=np.float32).reshape(-1, 3), colors=CAMERA_COLOR, radii=0.02))
         self._positions.append(T[:3, 3].astype(np.float32))
         self.frames += 1
-        if self.frames % self.trajectory_every == 1 or self.trajectory_every == 1:
-            s.log("world/trajectory", rr.LineStrips3D([np.array(self._positions)], colors=[ESTIMATE_COLOR]))
+        if (self.frames - 1) % self.trajectory_every == 0:
+            self._log_trajectory()
+
+    def _log_trajectory(self) -> None:
+        self.stream.log("world/trajectory", self.rr.LineStrips3D([np.array(self._positions)], colors=[ESTIMATE_COLOR]))
 
     def close(self) -> None:
         if self._positions:
-            self.stream.log("world/trajectory", self.rr.LineStrips3D([np.array(self._positions)], colors=[ESTIMATE_COLOR]))
+            self._log_trajectory()
         self.stream.flush()
         self.stream.disconnect()
 
