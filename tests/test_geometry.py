@@ -473,3 +473,17 @@ def test_pixel_bearings_of_the_default_camera(rig_camera):
     idx = np.array([0, W - 1, (H - 1) * W, H * W - 1, 123 * W + 456])
     uv, _ = rig_camera.project(B[idx])
     np.testing.assert_allclose(uv, [[0, 0], [W - 1, 0], [0, H - 1], [W - 1, H - 1], [456, 123]], atol=1e-6)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-12, 1e-7, 1e-3, 0.3, 2.0, 2.96, 3.0, np.pi - 1e-6])
+def test_so3_exp_and_log_agree_with_scipy_at_every_angle(angle):
+    # the plain-numpy forms (closed form below 170 degrees, scipy's route near pi) against scipy
+    from dem_graph.geometry.lie import so3_exp, so3_log
+
+    rng = np.random.default_rng(int(angle * 1000))
+    for _ in range(20):
+        axis = rng.normal(size=3)
+        w = angle * axis / np.linalg.norm(axis)
+        R = Rotation.from_rotvec(w).as_matrix()
+        np.testing.assert_allclose(so3_exp(w), R, atol=1e-14)
+        np.testing.assert_allclose(so3_log(R), w, atol=1e-9 if angle > 3.0 else 1e-14)

@@ -7,6 +7,8 @@ gtsam's ``Pose3.retract`` to first order.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -22,11 +24,40 @@ def skew(w: np.ndarray) -> np.ndarray:
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
-    return Rotation.from_rotvec(np.asarray(w, dtype=float)).as_matrix()
+    """The rotation (3,3) of a rotation vector (3,) (Rodrigues). Plain numpy: it runs several
+    times a frame, where scipy's ``Rotation`` costs tens of microseconds a call."""
+    x, y, z = (float(a) for a in np.asarray(w, dtype=float).reshape(3))
+    angle2 = x * x + y * y + z * z
+    if angle2 < 1e-16:
+        a, b = 1.0 - angle2 / 6.0, 0.5 - angle2 / 24.0
+    else:
+        angle = math.sqrt(angle2)
+        a, b = math.sin(angle) / angle, (1.0 - math.cos(angle)) / angle2
+    # I + a K + b K^2 with K = skew(w), K^2 = w w^T - |w|^2 I
+    return np.array(
+        [
+            [1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
+            [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
+            [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)],
+        ]
+    )
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
-    return Rotation.from_matrix(R).as_rotvec()
+    """The rotation vector (3,) of a rotation (3,3); plain numpy below 170 degrees (see
+    :func:`so3_exp`), scipy's quaternion route near pi, where the closed form loses precision."""
+    R = np.asarray(R, dtype=float)
+    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    if c < _COS_170_DEG:
+        return Rotation.from_matrix(R).as_rotvec()
+    v = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    s = math.sqrt(float(v @ v))  # sin(angle)
+    if s < 1e-8:
+        return v * (1.0 + s * s / 6.0)
+    return v * (math.atan2(s, min(c, 1.0)) / s)
+
+
+_COS_170_DEG = math.cos(math.radians(170.0))
 
 
 def so3_log_many(R: np.ndarray) -> np.ndarray:
