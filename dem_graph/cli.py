@@ -130,7 +130,8 @@ def _pop_dataset_options(kwargs: dict) -> dict:
 @click.option("--keyframe-every", type=int, default=None, help="isam2: a keyframe every this many frames (1: every frame); isam2-batch: the same for its online pass [default: 1 for isam2, 5 for isam2-batch].")
 @click.option("--graph-process", is_flag=True, help="isam2: run the graph in a second process, on another core (faster frames; results depend on the timing).")
 @click.option("--realtime", is_flag=True, help="Give the estimator each event when its time has come on the wall clock, as the sensors would live (a run takes the log's duration at least).")
-@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Run folder to write.")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Run folder to write (kept current as the run goes: Ctrl-C keeps what was done).")
+@click.option("--overwrite", is_flag=True, help="Empty a run folder that holds an earlier run and write this one there.")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="YAML run configuration (see config.yaml of a run).")
 @click.option("--max-points", type=int, default=None, help="Cap n on live points.")
 @click.option("--no-odometry", is_flag=True, help="Ignore the dataset's odometry (constant-velocity model).")
@@ -139,7 +140,7 @@ def _pop_dataset_options(kwargs: dict) -> dict:
 @click.option("--record", "record_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Save what --viewer shows to this rerun recording (.rrd), without a screen.")
 @_dataset_options
 @_friendly_errors
-def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_dir, config_path, max_points, no_odometry, max_frames, viewer, record_path, **kwargs) -> None:
+def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_dir, overwrite, config_path, max_points, no_odometry, max_frames, viewer, record_path, **kwargs) -> None:
     """Run an estimator over a dataset (folder, KITTI or ROS bag); write trajectory.tum, points.ply, metrics.json, config.yaml
     (isam2 also trajectory_smoothed.tum; isam2-batch also trajectory_online.tum)."""
     from dem_graph.pipeline.config import RunOverrides
@@ -154,13 +155,13 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_
         keyframe_every=keyframe_every, graph_process=graph_process, realtime=realtime,
     )
     shown = ViewerOptions(spawn=viewer, record_path=record_path) if viewer or record_path else None
-    result = run_dataset(dataset, overrides, config_path, out_dir, _dataset_options_of(options), fmt, viewer=shown)
+    result = run_dataset(dataset, overrides, config_path, out_dir, _dataset_options_of(options), fmt, viewer=shown, overwrite=overwrite)
     for line in summary_lines(result.metrics):
         click.echo(line)
     click.echo(f"run folder: {out_dir} ({', '.join(p.name for p in result.paths.values())})")
     if result.error:
         click.echo(f"dem-graph: error: {result.error} (results up to there were written)", err=True)
-        sys.exit(2)
+        sys.exit(130 if result.interrupted else 2)
 
 
 @main.command()

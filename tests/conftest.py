@@ -30,6 +30,16 @@ def tiny_folder(tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="session")
+def smoke_folder(tmp_path_factory):
+    """The `smoke` scenario (4 m, 2.5 s) as a dataset folder, as `dem-graph simulate` writes it."""
+    from dem_graph.sim.pipeline import simulate
+
+    out = tmp_path_factory.mktemp("smoke_folder") / "smoke"
+    simulate(scenario("smoke", seed=5), out, preview=False)
+    return out
+
+
 SHARED_KITTI = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti_odometry"
 
 

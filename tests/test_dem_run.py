@@ -58,7 +58,9 @@ def test_no_measurement_at_all_is_a_clear_error():
 def run_folder(tmp_path_factory):
     root = tmp_path_factory.mktemp("dem_run")
     log = root / "smoke"
-    r = CliRunner().invoke(main, ["--no-progress", "simulate", "--scenario", "smoke", "--seed", "7", "--length-m", "1.5", "--out", str(log)])
+    r = CliRunner().invoke(
+        main, ["--no-progress", "simulate", "--scenario", "smoke", "--seed", "7", "--length-m", "1.5", "--out", str(log)]
+    )
     assert r.exit_code == 0, r.output
     out = root / "run"
     r = CliRunner().invoke(main, ["--no-progress", "run", str(log), "--estimator", "ptpm", "--out", str(out)])
@@ -125,7 +127,9 @@ def test_a_run_without_any_laser_return_makes_its_dem_from_the_map_points_alone(
     from dem_graph.datasets.events import LaserScan
     from dem_graph.pipeline import RunConfig, run_estimator
 
-    blind = smoke_log.replace_events([replace(e, ranges_m=e.ranges_m * np.nan) if isinstance(e, LaserScan) else e for e in smoke_log.events()])
+    blind = smoke_log.replace_events(
+        [replace(e, ranges_m=e.ranges_m * np.nan) if isinstance(e, LaserScan) else e for e in smoke_log.events()]
+    )
     run = run_estimator(blind, RunConfig(estimator="ptpm", max_frames=20))
     assert run.error is None
     d = run.metrics.dem
@@ -136,8 +140,11 @@ def test_a_run_without_any_laser_return_makes_its_dem_from_the_map_points_alone(
     assert np.all(np.isfinite(dem.variance[dem.covered]))
 
 
-def test_dem_command_with_a_resolution_of_zero_is_one_line(run_folder, tmp_path):
+@pytest.mark.parametrize("resolution", ["0", "1e-6"])  # 1e-6 m once tried to allocate petabytes
+def test_dem_command_with_a_resolution_below_a_centimetre_is_one_line(run_folder, tmp_path, resolution):
     log, out = run_folder
-    r = CliRunner().invoke(main, ["--no-progress", "dem", str(out), "--dataset", str(log), "--resolution", "0", "--out", str(tmp_path / "d")])
+    r = CliRunner().invoke(
+        main, ["--no-progress", "dem", str(out), "--dataset", str(log), "--resolution", resolution, "--out", str(tmp_path / "d")]
+    )
     assert r.exit_code == 2 and r.stderr.count("\n") == 1
-    assert "invalid DEM resolution: resolution_m: Input should be greater than 0" in r.stderr
+    assert "invalid DEM resolution: resolution_m: Input should be greater than or equal to 0.01" in r.stderr

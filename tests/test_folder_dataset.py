@@ -26,6 +26,13 @@ T0_S = 1000.0
 _KIND_ORDER = {Odometry: 0, LaserScan: 1, CameraFrame: 2}
 
 
+def tiny_rig():
+    """The default rig with a 32x24 camera, the size of :class:`TinySequence`'s images."""
+    rig = default_rig()
+    camera = rig.camera.model_copy(update=dict(width_px=32, height_px=24, fx_px=22.4, fy_px=22.4, cx_px=15.5, cy_px=11.5))
+    return rig.model_copy(update={"camera": camera})
+
+
 class TinySequence(Sequence):
     """6 frames of 32x24 images, 3 scans with NaNs, 10 odometry increments and ground truth, all in memory."""
 
@@ -34,7 +41,7 @@ class TinySequence(Sequence):
 
     def __init__(self, with_odometry: bool = True, with_ground_truth: bool = True, with_elevation: bool = True):
         rng = np.random.default_rng(42)
-        self._rig = default_rig()
+        self._rig = tiny_rig()
         beams = self._rig.laser.beams.count
 
         self.frames = []
@@ -622,7 +629,7 @@ def test_invalid_rig(written):
     rig = yaml.safe_load((written / "rig.yaml").read_text())
     rig["laser"]["range_max_m"] = -1.0
     (written / "rig.yaml").write_text(yaml.safe_dump(rig))
-    with pytest.raises(ConfigError, match=r"rig\.yaml: invalid rig: laser\.range_max_m"):
+    with pytest.raises(ConfigError, match=r"rig\.yaml: laser\.range_max_m is -1\.0; it must be a finite number above 0"):
         FolderSequence(written)
 
 

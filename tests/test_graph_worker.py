@@ -1,14 +1,18 @@
 """The graph's side of the graph estimator: the same messages give the same smoothing in this
-process and in a second one, failures and restarts, and a whole run with the graph in a second
-process against the simulator's truth."""
+process and in a second one, failures and restarts, a whole run with the graph in a second
+process against the simulator's truth, and that process's quiet end with a `dem-graph run`
+interrupted (Ctrl-C, SIGTERM) or killed."""
 
 from __future__ import annotations
 
 import os
 import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -212,3 +216,112 @@ def test_a_run_with_the_graph_in_a_second_process(smoke_log):
     assert m.trajectory.ate_rmse_m < 0.03
     assert m.trajectory_smoothed.ate_rmse_m < 0.03
     assert "graph_lag_keyframes_median" in m.events
+
+
+# --- the graph process ends with its run ------------------------------------------------------
+# `dem-graph run` in a process group of its own; the processes are seen through /proc (Linux).
+
+signals_on_linux = pytest.mark.skipif(sys.platform != "linux", reason="reads /proc")
+
+
+def _stat(pid: int) -> list[str] | None:
+    """The fields of /proc/<pid>/stat after the name (state, ppid, ...); None when it has gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return None
+
+
+def _children(pid: int) -> list[int]:
+    return [int(d) for d in os.listdir("/proc") if d.isdigit() and (s := _stat(int(d))) is not None and int(s[1]) == pid]
+
+
+def _ignores_sigint(pid: int) -> bool:
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    ignored = int(status.split("SigIgn:")[1].split()[0], 16)
+    return bool(ignored & (1 << (signal.SIGINT - 1)))
+
+
+def _gone(pid: int, timeout_s: float) -> bool:
+    """Whether process ``pid`` has ended (a zombie waiting for its new parent counts) within ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while (s := _stat(pid)) is not None and s[0] != "Z":
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def _start_run(folder, out) -> tuple[subprocess.Popen, int]:
+    """`dem-graph run` with the graph in a second process, in real time (the run lasts the log's
+    2.5 s at least), and the pid of the graph process once it serves: it ignores SIGINT from then.
+    The run is processing frames by then (it waits for the graph past 10 keyframes)."""
+    command = [
+        sys.executable,
+        "-m",
+        "dem_graph.cli",
+        "run",
+        str(folder),
+        "--estimator",
+        "isam2",
+        "--graph-process",
+        "--realtime",
+        "--out",
+        str(out / "run"),
+    ]
+    with open(out / "stderr.txt", "w") as stderr:
+        run = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=stderr, start_new_session=True)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and run.poll() is None:
+        graph = _children(run.pid)  # (its only child)
+        if graph and _ignores_sigint(graph[0]):
+            time.sleep(0.2)  # the graph at work on the keyframes queued meanwhile
+            return run, graph[0]
+        time.sleep(0.02)
+    run.kill()
+    raise AssertionError(f"no graph process ignoring SIGINT before the run's end: {(out / 'stderr.txt').read_text()}")
+
+
+def _stop(run: subprocess.Popen, graph_pid: int) -> None:
+    """Whatever the test left running."""
+    if run.poll() is None:
+        run.kill()
+        run.wait()
+    if not _gone(graph_pid, 0.0):
+        os.kill(graph_pid, signal.SIGKILL)
+
+
+@signals_on_linux
+@pytest.mark.parametrize("how", ["SIGINT to the group", "SIGTERM to the run"])
+def test_the_graph_process_ends_quietly_with_an_interrupted_run(smoke_folder, tmp_path, how):
+    """Ctrl-C (SIGINT to the whole group, as a terminal sends it) or SIGTERM to the run mid-way: the
+    run ends (within 15 s: it may keep what it has), the graph process with it (within 3 s more),
+    and no one prints a traceback (before, the graph process printed its KeyboardInterrupt)."""
+    run, graph_pid = _start_run(smoke_folder, tmp_path)
+    try:
+        if how == "SIGINT to the group":
+            os.killpg(run.pid, signal.SIGINT)
+        else:
+            os.kill(run.pid, signal.SIGTERM)
+        run.wait(timeout=15)
+        assert _gone(graph_pid, 3.0), "the graph process outlived its run"
+    finally:
+        _stop(run, graph_pid)
+    stderr = (tmp_path / "stderr.txt").read_text()
+    assert "Traceback" not in stderr, stderr
+
+
+@signals_on_linux
+def test_the_graph_process_ends_with_a_killed_run(smoke_folder, tmp_path):
+    """SIGKILL to the run mid-way: the graph process ends within 3 s (Linux tells it at once), quietly."""
+    run, graph_pid = _start_run(smoke_folder, tmp_path)
+    try:
+        run.kill()
+        assert _gone(graph_pid, 3.0), "the graph process outlived its killed run"
+    finally:
+        _stop(run, graph_pid)
+    stderr = (tmp_path / "stderr.txt").read_text()
+    assert "Traceback" not in stderr, stderr

@@ -10,6 +10,7 @@ import yaml
 
 from dem_graph.errors import ConfigError
 from dem_graph.geometry.rig import (
+    CameraSpec,
     DirectionBeams,
     OdometrySpec,
     PlanarBeams,
@@ -18,7 +19,9 @@ from dem_graph.geometry.rig import (
     rig_from_dict,
     rig_to_dict,
     save_rig,
+    validated,
 )
+from dem_graph.geometry.se3 import make_pose, rotation_from_rpy
 
 # ------------------------------------------------------------------ default geometry
 
@@ -211,6 +214,75 @@ CASES = {
     ),
     "missing_camera_pose": (lambda d: d["camera"].pop("T_body_cam"), ["camera.T_body_cam"]),
     "missing_laser": (lambda d: d.pop("laser"), ["laser"]),
+    # every value a run uses: finite, in its range, with the field named and what it must be
+    "nan_cx": (
+        lambda d: d["camera"].__setitem__("cx_px", float("nan")),
+        ["camera.cx_px is nan; it must be a finite pixel coordinate inside the image (-0.5 to 799.5)"],
+    ),
+    "cx_outside": (
+        lambda d: d["camera"].__setitem__("cx_px", 800.0),
+        ["camera.cx_px is 800.0; it must be a finite pixel coordinate inside the image"],
+    ),
+    "cy_negative": (
+        lambda d: d["camera"].__setitem__("cy_px", -3.0),
+        ["camera.cy_px is -3.0; it must be a finite pixel coordinate inside the image (-0.5 to 599.5)"],
+    ),
+    "nan_fx": (lambda d: d["camera"].__setitem__("fx_px", float("nan")), ["camera.fx_px is nan; it must be a finite number above 0"]),
+    "inf_fy": (lambda d: d["camera"].__setitem__("fy_px", float("inf")), ["camera.fy_px is inf; it must be a finite number above 0"]),
+    "nan_distortion": (
+        lambda d: d["camera"]["distortion"].__setitem__(1, float("nan")),
+        ["camera.distortion has k2 = nan; every coefficient must be a finite number"],
+    ),
+    "inf_camera_rate": (
+        lambda d: d["camera"].__setitem__("rate_hz", float("inf")),
+        ["camera.rate_hz is inf; it must be a finite number above 0"],
+    ),
+    "negative_image_noise": (
+        lambda d: d["camera"].__setitem__("noise_sigma_dn", -1.0),
+        ["camera.noise_sigma_dn is -1.0; it must be a finite number, 0 or more"],
+    ),
+    "cam_not_rigid": (
+        lambda d: d["camera"]["T_body_cam"][0].__setitem__(0, 1.5),
+        ["camera.T_body_cam rotation block is not a proper rotation"],
+    ),
+    "cam_inf": (lambda d: d["camera"]["T_body_cam"][2].__setitem__(3, float("inf")), ["camera.T_body_cam contains NaN or infinite values"]),
+    "laser_rate_zero": (lambda d: d["laser"].__setitem__("rate_hz", 0.0), ["laser.rate_hz is 0.0; it must be a finite number above 0"]),
+    "range_min_nan": (
+        lambda d: d["laser"].__setitem__("range_min_m", float("nan")),
+        ["laser.range_min_m is nan; it must be a finite number, 0 or more"],
+    ),
+    "range_max_inf": (
+        lambda d: d["laser"].__setitem__("range_max_m", float("inf")),
+        ["laser.range_max_m is inf; it must be a finite number above 0"],
+    ),
+    "range_sigma_negative": (
+        lambda d: d["laser"].__setitem__("range_sigma_m", -0.01),
+        ["laser.range_sigma_m is -0.01; it must be a finite number, 0 or more"],
+    ),
+    "beam_angle_nan": (
+        lambda d: d["laser"]["beams"].__setitem__("angle_min_rad", float("nan")),
+        ["laser.beams.planar.angle_min_rad is nan; it must be a finite number"],
+    ),
+    "beam_step_zero": (
+        lambda d: d["laser"]["beams"].__setitem__("angle_increment_rad", 0.0),
+        ["laser.beams.planar.angle_increment_rad is 0.0; it must be a finite number above 0"],
+    ),
+    "beams_over_a_turn": (
+        lambda d: d["laser"]["beams"].__setitem__("count", 1000),
+        ["laser.beams.planar.count is 1000; 1000 beams every", "span more than a full turn"],
+    ),
+    "odometry_rate_nan": (
+        lambda d: d["odometry"].__setitem__("rate_hz", float("nan")),
+        ["odometry.rate_hz is nan; it must be a finite number above 0"],
+    ),
+    "odometry_sigma_negative": (
+        lambda d: d["odometry"].__setitem__("sigma_yaw_rad_per_sqrt_m", -0.1),
+        ["odometry.sigma_yaw_rad_per_sqrt_m is -0.1; it must be a finite number, 0 or more"],
+    ),
+    "odometry_floor_zero": (
+        lambda d: d["odometry"].__setitem__("min_distance_m", 0.0),
+        ["odometry.min_distance_m is 0.0; it must be a finite number above 0"],
+    ),
 }
 
 
@@ -218,14 +290,40 @@ CASES = {
 def test_invalid_rig_values(tmp_path, case):
     mod, fragments = CASES[case]
     path = _write(tmp_path, _modified(mod))
-    _assert_config_error(path, "invalid rig", *fragments)
+    msg = _assert_config_error(path, *fragments)
+    assert msg.startswith(f"{path}: ") and "\n" not in msg
+
+
+def test_a_full_turn_of_beams_is_allowed():
+    beams = PlanarBeams(angle_min_rad=-np.pi, angle_increment_rad=2 * np.pi / 360, count=361)
+    assert beams.count == 361
+
+
+def test_a_principal_point_on_the_image_border_is_allowed():
+    data = _modified(lambda d: d["camera"].update(cx_px=-0.5, cy_px=599.5))
+    rig = rig_from_dict(data)
+    assert (rig.camera.cx_px, rig.camera.cy_px) == (-0.5, 599.5)
+
+
+def test_validated_names_the_source_and_the_field_under_a_prefix():
+    data = rig_to_dict(default_rig())["camera"]
+    data["fx_px"] = -1.0
+    with pytest.raises(ConfigError) as info:
+        validated(CameraSpec, data, "calib.txt", "camera")
+    assert str(info.value) == "calib.txt: camera.fx_px is -1.0; it must be a finite number above 0"
 
 
 def test_rig_from_dict_without_source_still_names_the_field():
     with pytest.raises(ConfigError) as info:
         rig_from_dict(_modified(lambda d: d["camera"].__setitem__("fx_px", -1.0)))
     assert info.value.source is None
-    assert "camera.fx_px" in str(info.value)
+    assert str(info.value) == "camera.fx_px is -1.0; it must be a finite number above 0"
+
+
+def test_assignment_is_validated_too():
+    camera = default_rig().camera
+    with pytest.raises(ValueError, match="cx_px"):
+        camera.cx_px = float("nan")
 
 
 # --------------------------------------------------------------------- odometry
@@ -276,3 +374,9 @@ def test_increment_covariance_distance_floor():
     assert np.all(np.diag(spec.increment_covariance(0.1)) > np.diag(at_floor))
     # all diagonal entries strictly positive at the floor, so the noise model is never singular
     assert np.all(np.diag(at_floor) > 0)
+
+
+def test_covariance_of_an_increment_is_the_model_for_its_length():
+    spec = OdometrySpec()
+    T = make_pose(rotation_from_rpy(0.01, -0.02, 0.3), [0.3, 0.4, 0.0])  # 0.5 m
+    np.testing.assert_array_equal(spec.covariance_of(T), spec.increment_covariance(0.5))

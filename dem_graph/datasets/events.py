@@ -9,11 +9,16 @@ import numpy as np
 
 @dataclass(frozen=True)
 class CameraFrame:
-    """One image: (H,W) uint8 grey or (H,W,3) uint8 BGR, taken at ``t_s``."""
+    """One image: (H,W) uint8 grey or (H,W,3) uint8 BGR, taken at ``t_s``.
+
+    ``textureless``: the reader found no texture in it (:class:`~dem_graph.datasets.checks.InputChecks`'
+    ``min_image_std_dn``): an estimator predicts its pose and neither tracks nor adds points in it.
+    """
 
     t_s: float
     image: np.ndarray = field(repr=False)
     index: int = 0
+    textureless: bool = False
 
 
 @dataclass(frozen=True)

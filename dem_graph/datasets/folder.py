@@ -29,6 +29,13 @@ then camera.
 :class:`FolderSequence` reads and validates every small file when it is opened and reads images
 lazily while :meth:`FolderSequence.events` iterates. :func:`write_folder_dataset` writes any
 :class:`Sequence` in this format, streaming its images to disk.
+
+Beyond the format, the reader holds a log to :class:`~dem_graph.datasets.checks.InputChecks`
+(:mod:`dem_graph.datasets.checks`): on open it refuses a clock jump in camera.csv, laser.npz or
+odometry.npz, an odometry covariance that is not one, and a first image of another size than the
+rig's camera; it repairs all-zero (unknown) covariances, skips odometry increments beyond the
+vehicle's motion and says when there is no laser scan, each with one warning. While iterating it
+refuses any image of the wrong size and marks frames without texture.
 """
 
 from __future__ import annotations
@@ -46,9 +53,20 @@ import numpy as np
 import yaml
 
 from dem_graph.datasets.base import LASER_STREAM, ODOMETRY_STREAM, GroundTruth, Sequence, first_not_increasing, merged_order, read_ahead
+from dem_graph.datasets.checks import (
+    InputChecks,
+    TextureWatch,
+    check_covariances,
+    check_image_size,
+    check_time_jumps,
+    image_std_dn,
+    plausible_increments,
+    repair_unknown_covariances,
+    warn_if_no_laser,
+)
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.errors import ConfigError, DatasetError
-from dem_graph.geometry.rig import SensorRig, load_rig, save_rig
+from dem_graph.geometry.rig import CameraSpec, SensorRig, load_rig, save_rig
 from dem_graph.geometry.se3 import check_pose
 from dem_graph.io.geotiff import read_elevation, write_elevation
 from dem_graph.io.tum import read_tum, write_tum
@@ -138,14 +156,7 @@ def _check_odometry(
         rigid = last_row_ok & orthonormal & (np.linalg.det(R) > 0)
         if not np.all(rigid):
             raise DatasetError(path, f"T_prev_curr[{int(np.argmin(rigid))}] is not a rigid transform")
-    finite = np.all(np.isfinite(covariance), axis=(1, 2))
-    if not np.all(finite):
-        raise DatasetError(path, f"covariance[{int(np.argmin(finite))}] contains NaN or infinite values")
-    if n:
-        scale = np.maximum(1.0, np.max(np.abs(covariance), axis=(1, 2)))
-        symmetric = np.max(np.abs(covariance - np.swapaxes(covariance, 1, 2)), axis=(1, 2)) <= 1e-9 * scale
-        if not np.all(symmetric):
-            raise DatasetError(path, f"covariance[{int(np.argmin(symmetric))}] is not symmetric")
+    check_covariances(path, covariance)  # all-zero ones (unknown) pass: the reader repairs them
 
 
 def _check_image(path: Path, image: np.ndarray) -> None:
@@ -241,7 +252,8 @@ def _read_metadata(path: Path) -> dict:
     }
 
 
-def _read_camera_csv(path: Path, root: Path, t_start_s: float) -> tuple[np.ndarray, list[Path]]:
+def _read_camera_csv(path: Path, root: Path, t_start_s: float) -> tuple[np.ndarray, list[Path], list[int]]:
+    """Frame times, image paths and the line of each frame in ``camera.csv``."""
     _require_file(path, "camera index")
     try:
         text = path.read_text(encoding="utf-8")
@@ -252,7 +264,7 @@ def _read_camera_csv(path: Path, root: Path, t_start_s: float) -> tuple[np.ndarr
         raise DatasetError(path, f"empty: expected the header {','.join(CAMERA_HEADER)}")
     if [c.strip() for c in rows[0][1]] != CAMERA_HEADER:
         raise DatasetError(path, f"line {rows[0][0]}: header must be {','.join(CAMERA_HEADER)}, got {','.join(rows[0][1])}")
-    times, files = [], []
+    times, files, lines = [], [], []
     for position, (line_no, row) in enumerate(rows[1:]):
         if len(row) != 3:
             raise DatasetError(path, f"line {line_no}: expected 3 columns (index,t_s,file), got {len(row)}")
@@ -281,9 +293,10 @@ def _read_camera_csv(path: Path, root: Path, t_start_s: float) -> tuple[np.ndarr
             )
         times.append(t)
         files.append(image_path)
+        lines.append(line_no)
     t_s = np.array(times, dtype=np.float64)
     _check_times(path, "t_s", t_s, t_start_s)
-    return t_s, files
+    return t_s, files, lines
 
 
 def _decode_quietly(data: np.ndarray) -> np.ndarray | None:
@@ -308,10 +321,21 @@ def _read_image(path: Path) -> np.ndarray:
     return image
 
 
-class FolderSequence(Sequence):
-    """A dataset folder (see the module docstring), validated on open; images are read lazily."""
+def _read_frame(path: Path, camera: CameraSpec) -> tuple[np.ndarray, float]:
+    """The image at ``path``, checked against the rig's camera, and its grey levels' deviation (DN)."""
+    image = _read_image(path)
+    check_image_size(path, image, camera)
+    return image, image_std_dn(image)
 
-    def __init__(self, path: str | Path):
+
+class FolderSequence(Sequence):
+    """A dataset folder (see the module docstring), validated on open; images are read lazily.
+
+    ``checks``: the limits the log is held to (:class:`~dem_graph.datasets.checks.InputChecks`; None: the defaults).
+    """
+
+    def __init__(self, path: str | Path, checks: InputChecks | None = None):
+        self.input_checks = checks if checks is not None else InputChecks()
         root = Path(path)
         if not root.is_dir():
             raise DatasetError(root, "dataset folder not found" if not root.exists() else "not a folder")
@@ -329,7 +353,8 @@ class FolderSequence(Sequence):
         beam_count = self._rig.laser.beams.count
 
         camera_path = root / CAMERA_CSV
-        self._frame_t_s, self._frame_files = _read_camera_csv(camera_path, root, self._t_start_s)
+        self._frame_t_s, self._frame_files, lines = _read_camera_csv(camera_path, root, self._t_start_s)
+        check_time_jumps(camera_path, self._frame_t_s, self._t_start_s, self.input_checks, lambda i: f"line {lines[i]}: frame {i} t_s")
 
         laser_path = root / LASER_NPZ
         _require_file(laser_path, "laser scans")
@@ -337,6 +362,7 @@ class FolderSequence(Sequence):
         _check_laser(laser_path, laser["t_s"], laser["ranges_m"], beam_count, self._t_start_s)
         self._scan_t_s = laser["t_s"].astype(np.float64)
         self._scan_ranges_m = laser["ranges_m"].astype(np.float32)
+        check_time_jumps(laser_path, self._scan_t_s, self._t_start_s, self.input_checks, lambda i: f"t_s[{i}]")
 
         odometry_path = root / ODOMETRY_NPZ
         self._has_odometry = odometry_path.exists()
@@ -347,6 +373,10 @@ class FolderSequence(Sequence):
                 odometry_path, odo["t_s"], odo["t_prev_s"], odo["T_prev_curr"], odo["covariance"], self._t_start_s
             )
             self._odo = {k: v.astype(np.float64) for k, v in odo.items()}
+            check_time_jumps(odometry_path, self._odo["t_s"], self._t_start_s, self.input_checks, lambda i: f"t_s[{i}]")
+            self._odo["covariance"] = repair_unknown_covariances(
+                odometry_path, self._odo["covariance"], self._odo["T_prev_curr"], self._rig.odometry
+            )
         else:
             if counts["odometry"]:
                 raise DatasetError(odometry_path, f"not found, but {DATASET_YAML} counts {counts['odometry']} odometry events")
@@ -372,7 +402,15 @@ class FolderSequence(Sequence):
             elevation = read_elevation(elevation_path) if elevation_path.exists() else None
             self._ground_truth = GroundTruth(trajectory, elevation)
 
-        self._order = merged_order(self._odo["t_s"], self._scan_t_s, self._frame_t_s)
+        if self._frame_files:  # the first image, now: a rig that is not this camera's is refused before the run
+            _read_frame(self._frame_files[0], self._rig.camera)
+        warn_if_no_laser(laser_path, len(self._scan_t_s))
+        dt_s = self._odo["t_s"] - self._odo["t_prev_s"]
+        self._odometry_kept = np.flatnonzero(plausible_increments(odometry_path, self._odo["T_prev_curr"], dt_s, self.input_checks))
+        self._order = [
+            (kind, int(self._odometry_kept[i]) if kind == ODOMETRY_STREAM else i)
+            for kind, i in merged_order(self._odo["t_s"][self._odometry_kept], self._scan_t_s, self._frame_t_s)
+        ]
 
     @property
     def rig(self) -> SensorRig:
@@ -407,7 +445,7 @@ class FolderSequence(Sequence):
         return len(self._odo["t_s"])
 
     def event_count(self) -> int:
-        return self.n_frames + self.n_scans + self.n_odometry
+        return len(self._order)
 
     def laser_scans(self) -> tuple[np.ndarray, np.ndarray]:
         return self._scan_t_s.copy(), self._scan_ranges_m.astype(float)
@@ -415,10 +453,14 @@ class FolderSequence(Sequence):
     def events(self) -> Iterator[Event]:
         """Every event in time order (odometry, then laser, then camera at equal times); images read lazily.
 
-        Raises :class:`DatasetError` naming the image when a PNG is missing or cannot be decoded.
+        Odometry increments beyond the vehicle's motion are left out; frames without texture are marked
+        ``textureless``. Raises :class:`DatasetError` naming the image when a PNG is missing, cannot be
+        decoded or is not the rig's size.
         """
         odo = self._odo
-        images = read_ahead(_read_image(path) for path in self._frame_files)  # camera frames come in index order
+        camera = self._rig.camera
+        images = read_ahead(_read_frame(path, camera) for path in self._frame_files)  # camera frames come in index order
+        texture = TextureWatch(self.path / IMAGES_DIR, self.input_checks)
         for kind, i in self._order:
             if kind == ODOMETRY_STREAM:
                 yield Odometry(
@@ -431,7 +473,8 @@ class FolderSequence(Sequence):
             elif kind == LASER_STREAM:
                 yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges_m[i].copy(), i)
             else:
-                yield CameraFrame(float(self._frame_t_s[i]), next(images), i)
+                image, std_dn = next(images)
+                yield texture.frame(CameraFrame(float(self._frame_t_s[i]), image, i), std_dn, self._frame_files[i])
 
     def __repr__(self) -> str:
         return (
@@ -510,6 +553,7 @@ def write_folder_dataset(
                 name = f"{IMAGES_DIR}/{index:06d}.png"
                 image = np.ascontiguousarray(event.image)
                 _check_image(out / name, image)
+                check_image_size(out / name, image, rig.camera)
                 image_writer.submit(out / name, image)
                 frame_t.append(t)
                 frame_files.append(name)

@@ -78,7 +78,7 @@ from dem_graph.datasets.velodyne import (
 )
 from dem_graph.errors import DatasetError
 from dem_graph.geometry.grid import ElevationGrid
-from dem_graph.geometry.rig import CameraSpec, LaserSpec, OdometrySpec, SensorRig
+from dem_graph.geometry.rig import CameraSpec, LaserSpec, OdometrySpec, SensorRig, validated
 from dem_graph.geometry.se3 import invert, make_pose, nearest_pose, rotation_from_rpy
 from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.progress import progress
@@ -116,6 +116,8 @@ def _calib_matrix(calib: dict, key: str, shape: tuple[int, int], path: Path) -> 
         raise DatasetError(path, f"no '{key}' entry")
     if calib[key].size != shape[0] * shape[1]:
         raise DatasetError(path, f"'{key}' has {calib[key].size} values, expected {shape[0] * shape[1]}")
+    if not np.all(np.isfinite(calib[key])):
+        raise DatasetError(path, f"'{key}' holds NaN or infinite values")
     return calib[key].reshape(shape)
 
 
@@ -223,6 +225,7 @@ class _KittiSequence(Sequence):
         lidar_height_m: float,
         T_world_body_initial: np.ndarray,
         t_start_s: float,
+        calib_path: Path | None = None,
     ):
         self.name = name
         self._frame_t_s, self._frame_files = frame_t_s, frame_files
@@ -233,17 +236,39 @@ class _KittiSequence(Sequence):
         self._T0 = np.array(T_world_body_initial, dtype=float)
         self.T_body_lidar = make_pose(np.eye(3), [0.0, 0.0, lidar_height_m])
         width, height = image_size_px
-        fx, fy, cx, cy = P_cam[0, 0], P_cam[1, 1], P_cam[0, 2], P_cam[1, 2]
-        half_fov_deg = float(np.degrees(np.arctan2(max(cx, width - 1 - cx), fx)))
-        self._ring_laser, self._ring_elevations_deg, self.ring_split = self._make_ring_laser(ring, ground_distance_m, half_fov_deg, azimuth_step_deg)
         rate = 1.0 / float(np.median(np.diff(frame_t_s))) if len(frame_t_s) > 1 else 10.0
         scan_rate = 1.0 / float(np.median(np.diff(scan_t_s))) if len(scan_t_s) > 1 else 10.0
-        self._rig = SensorRig(
-            camera=CameraSpec(
-                width_px=width, height_px=height, fx_px=fx, fy_px=fy, cx_px=cx, cy_px=cy, distortion=(0.0, 0.0, 0.0, 0.0, 0.0),
-                rate_hz=rate, noise_sigma_dn=2.0, T_body_cam=self.T_body_lidar @ invert(T_cam_lidar),
+        camera = validated(  # the calibration's intrinsics checked as a rig file's would be
+            CameraSpec,
+            dict(
+                width_px=width,
+                height_px=height,
+                fx_px=P_cam[0, 0],
+                fy_px=P_cam[1, 1],
+                cx_px=P_cam[0, 2],
+                cy_px=P_cam[1, 2],
+                distortion=(0.0, 0.0, 0.0, 0.0, 0.0),
+                rate_hz=rate,
+                noise_sigma_dn=2.0,
+                T_body_cam=self.T_body_lidar @ invert(T_cam_lidar),
             ),
-            laser=LaserSpec(T_body_laser=self.T_body_lidar, beams=self._ring_laser.beams(), range_min_m=2.0, range_max_m=80.0, range_sigma_m=0.02, rate_hz=scan_rate),
+            calib_path,
+            "camera",
+        )
+        half_fov_deg = float(np.degrees(np.arctan2(max(camera.cx_px, width - 1 - camera.cx_px), camera.fx_px)))
+        self._ring_laser, self._ring_elevations_deg, self.ring_split = self._make_ring_laser(
+            ring, ground_distance_m, half_fov_deg, azimuth_step_deg
+        )
+        self._rig = SensorRig(
+            camera=camera,
+            laser=LaserSpec(
+                T_body_laser=self.T_body_lidar,
+                beams=self._ring_laser.beams(),
+                range_min_m=2.0,
+                range_max_m=80.0,
+                range_sigma_m=0.02,
+                rate_hz=scan_rate,
+            ),
             odometry=OdometrySpec(rate_hz=rate) if odometry else None,
         )
         self._elevation: ElevationGrid | None = None
@@ -395,7 +420,15 @@ class KittiOdometrySequence(_KittiSequence):
     def open_options(self) -> dict:
         return {**super().open_options(), "sequence": self.path.name}
 
-    def __init__(self, root: str | Path, sequence: str | int | None = None, ring: int | None = None, ground_distance_m: float = 10.0, azimuth_step_deg: float = 0.25, lidar_height_m: float = LIDAR_HEIGHT_M):
+    def __init__(
+        self,
+        root: str | Path,
+        sequence: str | int | None = None,
+        ring: int | None = None,
+        ground_distance_m: float = 10.0,
+        azimuth_step_deg: float = 0.25,
+        lidar_height_m: float = LIDAR_HEIGHT_M,
+    ):
         root = Path(root)
         if (root / "image_0").is_dir() and root.parent.name == "sequences":
             sequence, root = root.name if sequence is None else sequence, root.parent.parent
@@ -438,8 +471,23 @@ class KittiOdometrySequence(_KittiSequence):
             T_world_body = T_body_cam @ T_cam0_cam @ invert(T_body_cam)
             truth = Trajectory.from_poses(t_s, nearest_pose(T_world_body))
         super().__init__(
-            f"kitti-odometry-{sequence}", t_s, images, t_s.copy(), scans, T_cam_lidar, P0, (first.shape[1], first.shape[0]),
-            truth, [], ring, ground_distance_m, azimuth_step_deg, lidar_height_m, np.eye(4), float(t_s[0]),
+            f"kitti-odometry-{sequence}",
+            t_s,
+            images,
+            t_s.copy(),
+            scans,
+            T_cam_lidar,
+            P0,
+            (first.shape[1], first.shape[0]),
+            truth,
+            [],
+            ring,
+            ground_distance_m,
+            azimuth_step_deg,
+            lidar_height_m,
+            np.eye(4),
+            float(t_s[0]),
+            calib_path,
         )
 
     def __repr__(self) -> str:
@@ -517,7 +565,15 @@ class KittiRawSequence(_KittiSequence):
 
     layout = "kitti-raw"
 
-    def __init__(self, drive: str | Path, ring: int | None = None, ground_distance_m: float = 10.0, azimuth_step_deg: float = 0.25, lidar_height_m: float = LIDAR_HEIGHT_M, odometry_spec: OdometrySpec | None = None):
+    def __init__(
+        self,
+        drive: str | Path,
+        ring: int | None = None,
+        ground_distance_m: float = 10.0,
+        azimuth_step_deg: float = 0.25,
+        lidar_height_m: float = LIDAR_HEIGHT_M,
+        odometry_spec: OdometrySpec | None = None,
+    ):
         drive = Path(drive)
         if not drive.is_dir():
             raise DatasetError(drive, "drive folder not found")
@@ -572,9 +628,23 @@ class KittiRawSequence(_KittiSequence):
             raise DatasetError(drive / "image_00", "no image after the first OXTS record")
         first = _read_image(images[0])
         super().__init__(
-            f"kitti-raw-{drive.name}", t["image"][keep_img], images, t["velodyne"][keep_scan], scans, T_cam_lidar, P_rect,
-            (first.shape[1], first.shape[0]), truth, odometry, ring, ground_distance_m, azimuth_step_deg, lidar_height_m,
-            truth.poses_se3[0], t_start,
+            f"kitti-raw-{drive.name}",
+            t["image"][keep_img],
+            images,
+            t["velodyne"][keep_scan],
+            scans,
+            T_cam_lidar,
+            P_rect,
+            (first.shape[1], first.shape[0]),
+            truth,
+            odometry,
+            ring,
+            ground_distance_m,
+            azimuth_step_deg,
+            lidar_height_m,
+            truth.poses_se3[0],
+            t_start,
+            cam_path,
         )
 
     def __repr__(self) -> str:
@@ -591,7 +661,9 @@ def kitti_layout(path: str | Path) -> str | None:
     return None
 
 
-def open_kitti(path: str | Path, layout: str | None = None, sequence: str | int | None = None, ring: int | None = None, ground_distance_m: float = 10.0) -> _KittiSequence:
+def open_kitti(
+    path: str | Path, layout: str | None = None, sequence: str | int | None = None, ring: int | None = None, ground_distance_m: float = 10.0
+) -> _KittiSequence:
     """Open a KITTI folder of either layout (``layout`` None: told from the folder)."""
     layout = layout or kitti_layout(path)
     if layout == "kitti-odometry":

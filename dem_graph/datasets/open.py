@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dem_graph.datasets.base import Sequence
+from dem_graph.datasets.checks import InputChecks
 from dem_graph.errors import DatasetError
 
 FORMATS = ("folder", "kitti-odometry", "kitti-raw", "rosbag")
@@ -24,6 +25,7 @@ class DatasetOptions:
     body_frame: str | None = None  # rosbag: tf frame names for the extrinsics (when tf_static has them)
     camera_frame: str | None = None
     laser_frame: str | None = None
+    input_checks: InputChecks | None = None  # folder, rosbag: the limits bad input is held to (None: the defaults)
 
 
 def detect_format(path: str | Path) -> str:
@@ -52,7 +54,7 @@ def open_dataset(path: str | Path, format: str | None = None, options: DatasetOp
     if fmt == "folder":
         from dem_graph.datasets.folder import FolderSequence
 
-        return FolderSequence(path)
+        return FolderSequence(path, checks=options.input_checks)
     if fmt in ("kitti-odometry", "kitti-raw"):
         from dem_graph.datasets.kitti import open_kitti
 
@@ -61,12 +63,23 @@ def open_dataset(path: str | Path, format: str | None = None, options: DatasetOp
         from dem_graph.datasets.rosbag import RosbagSequence
         from dem_graph.geometry.rig import load_rig
 
-        missing = [n for n, v in (("a rig file", options.rig), ("the image topic", options.image_topic), ("the scan topic", options.scan_topic)) if v is None]
+        missing = [
+            n
+            for n, v in (("a rig file", options.rig), ("the image topic", options.image_topic), ("the scan topic", options.scan_topic))
+            if v is None
+        ]
         if missing:
             raise DatasetError(path, f"a ROS bag needs {', '.join(missing)}")
         return RosbagSequence(
-            path, load_rig(options.rig), options.image_topic, options.scan_topic, options.odometry_topic,
-            body_frame=options.body_frame, camera_frame=options.camera_frame, laser_frame=options.laser_frame,
+            path,
+            load_rig(options.rig),
+            options.image_topic,
+            options.scan_topic,
+            options.odometry_topic,
+            body_frame=options.body_frame,
+            camera_frame=options.camera_frame,
+            laser_frame=options.laser_frame,
+            checks=options.input_checks,
         )
     raise DatasetError(path, f"unknown dataset format {fmt!r}: choose from {', '.join(FORMATS)}")
 

@@ -10,14 +10,18 @@ The user names the topics and gives the rig (a rig YAML, :func:`~dem_graph.geome
 - ``odometry_topic`` (optional): ``nav_msgs/Odometry``; each message after the first gives the
   increment ``inv(T_odom_base_prev) @ T_odom_base_curr`` of its ``child_frame_id``, moved into the body
   frame when tf knows ``body_frame`` -> child frame, else taken as the body's own; its covariance is
-  the rig's odometry model for the distance travelled (the messages' own covariances are often
-  placeholders);
+  the rig's odometry model for the distance travelled. The messages' own covariances are of the
+  absolute pose in the odometry frame, often placeholders, and are not used: one warning says how
+  many are not covariances at all (all-zero ones, ROS's "unknown", are fine);
 - ``/tf_static`` and ``/tf``: when ``body_frame`` with ``camera_frame`` and/or ``laser_frame`` are given
   and the transforms link them, ``T_body_cam`` / ``T_body_laser`` come from there instead of the rig.
 
-Times are the messages' header stamps, seconds. Every stream must be in increasing time order. The
-bag has no ground truth; the initial pose is the identity at the first event's time. Scans and
-odometry are read when the bag is opened, images (with their stamps) once then again lazily while
+Times are the messages' header stamps, seconds. Every stream must be in increasing time order, with
+no jump forward longer than :attr:`~dem_graph.datasets.checks.InputChecks.max_gap_s` between two
+messages (a clock fault: refused). Odometry increments beyond the vehicle's motion are skipped and
+camera frames without texture marked (:mod:`dem_graph.datasets.checks`), each with a warning; a bag
+with no laser scan is warned of. The bag has no ground truth; the initial pose is the identity at
+the first event's time. Scans and odometry are read when the bag is opened, images (with their stamps) once then again lazily while
 :meth:`RosbagSequence.events` iterates.
 """
 
@@ -33,9 +37,18 @@ import cv2
 import numpy as np
 
 from dem_graph.datasets.base import LASER_STREAM, ODOMETRY_STREAM, Sequence, first_not_increasing, merged_order
+from dem_graph.datasets.checks import (
+    InputChecks,
+    TextureWatch,
+    check_time_jumps,
+    covariance_problems,
+    plausible_increments,
+    unknown_covariances,
+    warn_if_no_laser,
+)
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.errors import DatasetError, MissingDependencyError
-from dem_graph.geometry.rig import OdometrySpec, PlanarBeams, SensorRig
+from dem_graph.geometry.rig import OdometrySpec, PlanarBeams, SensorRig, rig_from_dict
 from dem_graph.geometry.se3 import invert, make_pose, matrix_from_quat_xyzw, nearest_pose
 from dem_graph.optional import import_rosbags_highlevel
 
@@ -226,7 +239,9 @@ class RosbagSequence(Sequence):
         body_frame: str | None = None,
         camera_frame: str | None = None,
         laser_frame: str | None = None,
+        checks: InputChecks | None = None,
     ):
+        self.input_checks = checks if checks is not None else InputChecks()
         self.path = Path(path)
         self.name = self.path.stem
         self._image_topic, self._scan_topic, self._odometry_topic = image_topic, scan_topic, odometry_topic
@@ -241,8 +256,18 @@ class RosbagSequence(Sequence):
             self._scan_t_s, self._scan_ranges = self._read_scans(reader)
             self._odometry = self._read_odometry(reader, tree, body_frame) if odometry_topic is not None else []
             self._frame_t_s = np.array([t for t, _ in self._iter_images(reader, decode=False)])
+        self._check_time_jumps()
+        warn_if_no_laser(self._where(scan_topic), len(self._scan_t_s))
         firsts = [a[0] for a in (self._frame_t_s, self._scan_t_s) if len(a)] + [o.t_prev_s for o in self._odometry[:1]]
         self._t_start_s = float(min(firsts)) if firsts else 0.0
+
+    def _check_time_jumps(self) -> None:
+        """Refuse a clock fault in any stream (a jump forward beyond ``max_gap_s`` between two messages)."""
+        streams = [(self._image_topic, self._frame_t_s), (self._scan_topic, self._scan_t_s)]
+        if self._odometry_topic is not None:
+            streams.append((self._odometry_topic, np.array([o.t_s for o in self._odometry])))
+        for topic, t_s in streams:
+            check_time_jumps(self._where(topic), t_s, None, self.input_checks, lambda i: f"message {i}: time")
 
     # --------------------------------------------------------------------------------------------
 
@@ -279,7 +304,9 @@ class RosbagSequence(Sequence):
                 log.warning("tf does not link %s to %s: T_body_laser from the rig", body, laser)
             else:
                 laser_spec = laser_spec.model_copy(update={"T_body_laser": T})
-        return SensorRig.model_validate({**rig.model_dump(), "camera": camera_spec.model_dump(), "laser": laser_spec.model_dump()})
+        return rig_from_dict(
+            {**rig.model_dump(), "camera": camera_spec.model_dump(), "laser": laser_spec.model_dump()}, f"{self.path} tf {body}"
+        )
 
     def _read_scans(self, reader) -> tuple[np.ndarray, np.ndarray]:
         beams = self._rig.laser.beams
@@ -291,23 +318,31 @@ class RosbagSequence(Sequence):
         return t, ranges
 
     def _read_odometry(self, reader, tree: TransformTree, body: str | None) -> list[Odometry]:
+        """The increments between consecutive messages, those beyond the vehicle's motion left out."""
         spec = self._rig.odometry or OdometrySpec()
         out: list[Odometry] = []
         prev = None
-        times = []
+        times, covariances = [], []
         for msg in self._messages(reader, self._odometry_topic):
             t, T = stamp_s(msg.header), _pose_from_msg(msg.pose.pose)
             times.append(t)
+            covariances.append(np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6))
             if prev is not None:
                 T_inc = invert(prev[1]) @ T
                 T_body_base = tree.lookup(body, msg.child_frame_id) if body is not None and msg.child_frame_id else None
                 if T_body_base is not None:
                     T_inc = T_body_base @ T_inc @ invert(T_body_base)
                 T_inc = nearest_pose(T_inc)
-                out.append(Odometry(t, prev[0], T_inc, spec.increment_covariance(float(np.linalg.norm(T_inc[:3, 3]))), len(out)))
+                out.append(Odometry(t, prev[0], T_inc, spec.covariance_of(T_inc), len(out)))
             prev = (t, T)
+        where = self._where(self._odometry_topic)
         self._check_increasing(np.array(times), self._odometry_topic)
-        return out
+        _warn_unused_covariances(where, np.array(covariances).reshape(-1, 6, 6))
+        if not out:
+            return out
+        dt_s = np.array([o.t_s - o.t_prev_s for o in out])
+        keep = plausible_increments(where, np.array([o.T_prev_curr for o in out]), dt_s, self.input_checks)
+        return [o for o, k in zip(out, keep) if k]
 
     def _iter_images(self, reader, decode: bool = True):
         where = self._where(self._image_topic)
@@ -352,6 +387,7 @@ class RosbagSequence(Sequence):
             # in the order of _frame_t_s; decoded here, not read ahead in a thread (base.read_ahead): the
             # ROS 2 bag's SQLite connection refuses to be used from another thread
             images = self._iter_images(reader)
+            texture = TextureWatch(self._where(self._image_topic), self.input_checks)
             for kind, i in merged_order([o.t_s for o in self._odometry], self._scan_t_s, self._frame_t_s):
                 if kind == ODOMETRY_STREAM:
                     yield self._odometry[i]
@@ -359,10 +395,29 @@ class RosbagSequence(Sequence):
                     yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges[i].copy(), i)
                 else:
                     t, image = next(images)
-                    yield CameraFrame(t, image, i)
+                    yield texture.frame(CameraFrame(t, image, i))
 
     def __repr__(self) -> str:
         return f"RosbagSequence({str(self.path)!r}, frames={len(self._frame_t_s)}, scans={len(self._scan_t_s)}, odometry={len(self._odometry)})"
+
+
+def _warn_unused_covariances(where: str, covariance: np.ndarray) -> None:
+    """One warning when odometry messages carry pose covariances that are not covariances (all-zero
+    ones, ROS's "unknown", are fine): they are not used, but say something of the driver."""
+    known = np.flatnonzero(~unknown_covariances(covariance))
+    bad = covariance_problems(covariance[known])
+    if bad is None:
+        return
+    i, problem, count = bad
+    log.warning(
+        "%s: %d of %d messages carry a pose covariance that is not one (first: message %d, it %s); "
+        "not used: the increments' covariances are the rig's odometry model",
+        where,
+        count,
+        len(covariance),
+        int(known[i]),
+        problem,
+    )
 
 
 __all__ = [

@@ -39,12 +39,21 @@ _Z_BITS = 24  # height quantisation bits in the median's sort key
 
 
 class FusionConfig(StrictModel):
-    resolution_m: float = Field(0.1, gt=0, description="DEM cell size, metres")
+    resolution_m: float = Field(
+        0.1,
+        ge=0.01,
+        description="DEM cell size, metres (at least 1 cm: the ranging noise is centimetres, and the live local map is made again at every frame)",
+    )
     gate_sigma: float = Field(3.0, gt=0, description="Mahalanobis gate on a measurement against its cell, in sigmas")
     gate_floor_m: float = Field(0.03, ge=0, description="height variation inside one cell, added to the gate's variance, metres")
     min_variance_m2: float = Field(1e-8, gt=0, description="floor on a measurement's height variance, m^2")
     gate_passes: int = Field(1, ge=1, description="gates against the fused height after the median's (each one more pass over the data)")
     margin_m: float = Field(0.5, ge=0, description="the global grid extends this far beyond the measurements, metres")
+    max_cells: int = Field(
+        50_000_000,
+        ge=1,
+        description="most cells a global grid may have (each costs about 60 bytes over its layers); a larger one is refused before it is allocated",
+    )
 
 
 def _cell_order_stats(cell: np.ndarray, z: np.ndarray, n_cells: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -177,6 +186,12 @@ def covering_geometry(returns: GroundReturns, config: FusionConfig | None = None
     r = config.resolution_m
     lo = np.floor(lo / r) * r  # cell edges on multiples of the resolution: maps of one place line up
     hi = np.ceil(hi / r) * r
+    (width_m, height_m), n_cells = hi - lo, np.prod(np.ceil((hi - lo) / r))
+    if n_cells > config.max_cells:
+        raise DemGraphError(
+            f"a DEM of {width_m:.1f} x {height_m:.1f} m in cells of {r:g} m would have {n_cells:.3g} cells, more than "
+            f"dem.fusion.max_cells ({config.max_cells:.3g}): choose a coarser resolution"
+        )
     return GridGeometry.covering(lo[0], lo[1], hi[0], hi[1], r)
 
 

@@ -76,12 +76,14 @@ class EkfSlam(FrameDrivenEstimator):
         t1 = time.perf_counter()
         timing["prediction"] = t1 - t0
         image = event.image
-        n_tracked, t_track, t_update = self._track_and_update(image, event.t_s)
+        # a frame without texture (the reader marked it) is not searched, loses no point and starts none
+        n_tracked, t_track, t_update = (0, 0.0, 0.0) if event.textureless else self._track_and_update(image, event.t_s)
         timing["tracking"], timing["update"] = t_track, t_update
         t2 = time.perf_counter()
         self.history.append(event.t_s, self.state.T_world_body)
-        live_uv = self._drop_points()
-        self._add_points(image, event.t_s, live_uv)
+        if not event.textureless:
+            live_uv = self._drop_points()
+            self._add_points(image, event.t_s, live_uv)
         timing["map"] = time.perf_counter() - t2
         timing["total"] = time.perf_counter() - t0
         record = FrameRecord(event.t_s, self.state.T_world_body.copy(), self.state.pose_covariance(), self.state.n_points, n_tracked, timing)

@@ -14,16 +14,27 @@ estimator's own process (:class:`InProcessGraph`: each keyframe's result is back
 ends, and a run is reproducible) or in a second process (:class:`ProcessGraph`: the frame's time is
 the front end's alone, the graph works on another core and its results come back one or more
 keyframes later; a run then depends on the timing).
+
+The second process ends with the estimator's, quietly, however that one ends. A terminal's Ctrl-C
+reaches every process of its group, the graph's too: the graph ignores it, and the estimator
+decides (it may still ask for the final estimates). It ends, without a traceback, when the
+connection breaks (the estimator has gone) or at SIGTERM (its default action, which the estimator's
+close sends, and which Linux sends when the estimator's process dies, even by SIGKILL).
 """
 
 from __future__ import annotations
 
+import atexit
+import ctypes
+import os
 import queue
+import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 
@@ -215,19 +226,18 @@ class InProcessGraph:
 
 
 def _serve(conn) -> None:
-    """The second process: apply whatever has arrived as one update, answer, repeat."""
+    """The second process: apply whatever has arrived as one update, answer, repeat. A broken
+    connection (EOFError, OSError) is left to :func:`main`."""
+    setup = conn.recv()
     try:
-        worker = GraphWorker(conn.recv())
+        worker = GraphWorker(setup)
     except Exception as exc:  # noqa: BLE001 - reported to the estimator, which raises it
         conn.send(("error", f"the graph process could not start: {exc}"))
         return
     while True:
-        try:
-            messages = [conn.recv()]
-            while conn.poll():
-                messages.append(conn.recv())
-        except EOFError:  # the estimator has gone
-            return
+        messages = [conn.recv()]
+        while conn.poll():
+            messages.append(conn.recv())
         finish = any(isinstance(m, str) and m == "finish" for m in messages)
         messages = [m for m in messages if not isinstance(m, str)]
         try:
@@ -236,12 +246,45 @@ def _serve(conn) -> None:
             if finish:
                 conn.send(("final", worker.final_estimates()))
                 return
+        except OSError:  # the connection, not the graph
+            raise
         except Exception as exc:  # noqa: BLE001 - a bug in the graph: reported, the estimator ends the run with what it has
             conn.send(("error", f"the graph process failed: {type(exc).__name__}: {exc}"))
             return
 
 
 _STOP = object()  # tells the sending thread to end
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+@contextmanager
+def _sigint_held():
+    """SIGINT held back from this thread meanwhile (it waits, or another thread takes it); a process
+    started meanwhile starts with it held back, until it chooses what to do with it."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
+def _follow_the_estimator(estimator_pid: int) -> bool:
+    """The second process's signals: Ctrl-C ignored (a Ctrl-C held back since the start is dropped
+    with it), SIGTERM ends the process at once and without a word (its default action), and on
+    Linux the estimator's death sends it. False when the estimator has died already."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # (an ignored SIGTERM would be inherited)
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, ctypes.c_ulong(signal.SIGTERM))
+        except (OSError, AttributeError):  # no prctl: the broken connection tells instead
+            pass
+    return os.getppid() == estimator_pid
 
 
 class ProcessGraph:
@@ -249,7 +292,9 @@ class ProcessGraph:
 
     The process is a fresh interpreter running this module (not a fork of the estimator's, and not
     ``multiprocessing``'s spawn, which would re-run the user's script), talking over a socket pair;
-    its first message is the setup.
+    its first message is the setup. It starts with Ctrl-C held back, so that one during its imports
+    (a second or more) does not interrupt it either. On Linux it gets SIGTERM when the thread that
+    made this object ends: make it in a thread that lasts the run.
 
     Messages leave through a thread of their own: the second process reads only between updates, so
     during a long one (the window's cut, a relinearisation) the socket's buffer fills after a few
@@ -261,7 +306,9 @@ class ProcessGraph:
     def __init__(self, setup: GraphSetup, max_lag: int = 10):
         ours, theirs = socket.socketpair()
         try:
-            self._process = subprocess.Popen([sys.executable, "-m", __name__, str(theirs.fileno())], pass_fds=(theirs.fileno(),))
+            command = [sys.executable, "-m", __name__, str(theirs.fileno()), str(os.getpid())]
+            with _sigint_held():
+                self._process = subprocess.Popen(command, pass_fds=(theirs.fileno(),))
         except OSError as exc:
             ours.close()
             raise DemGraphError(f"the graph process could not start: {exc}") from None
@@ -276,6 +323,7 @@ class ProcessGraph:
         self._send_failed = threading.Event()
         self._sender = threading.Thread(target=self._send_loop, name="graph-sender", daemon=True)
         self._sender.start()
+        atexit.register(self.close)  # an interrupted run does not leave the process behind
 
     def _send_loop(self) -> None:
         while (message := self._outbox.get()) is not _STOP:
@@ -303,7 +351,7 @@ class ProcessGraph:
     def _receive(self):
         try:
             kind, payload = self._conn.recv()
-        except EOFError:
+        except (EOFError, OSError):  # (a connection reset: the process died with our messages unread)
             raise DemGraphError("the graph process ended unexpectedly") from None
         if kind == "error":
             raise DemGraphError(payload)
@@ -322,40 +370,56 @@ class ProcessGraph:
         return out
 
     def finish(self) -> tuple[list[GraphResult], tuple[dict[int, np.ndarray], dict[int, np.ndarray]]]:
-        """The results not yet taken, and the final estimates once every message sent has been applied."""
-        self.send("finish")
-        pending, self._early = self._early, []
-        while True:
-            kind, payload = self._receive()
-            if kind == "final":
-                self._stop_sender()
-                self._conn.close()  # the process has ended
-                return pending, payload
-            pending.append(payload)
+        """The results not yet taken, and the final estimates once every message sent has been
+        applied. Whatever stops it (the process's end, Ctrl-C) stops the process too, and is raised."""
+        try:
+            self.send("finish")
+            pending, self._early = self._early, []
+            while True:
+                kind, payload = self._receive()
+                if kind == "final":
+                    self._stop_sender()
+                    self._conn.close()  # the process has ended
+                    return pending, payload
+                pending.append(payload)
+        except BaseException:
+            self.close()
+            raise
 
     def _stop_sender(self, timeout_s: float = 5.0) -> None:
         self._outbox.put(_STOP)
         self._sender.join(timeout_s)
 
     def close(self) -> None:
+        """Stop the process: after :meth:`finish` it ends by itself; before, it is terminated (the
+        run stopped early: an error, Ctrl-C). At the interpreter's exit, when no one has called it."""
         if not self._conn.closed:  # (after finish the thread has ended already)
+            self._process.terminate()  # first: a send waiting for the process then fails at once
             self._stop_sender()
-        self._conn.close()
+            self._conn.close()
         try:
             self._process.wait(timeout=5)
         except subprocess.TimeoutExpired:
             self._process.kill()
+            self._process.wait()
+        atexit.unregister(self.close)
 
 
-def main(fd: int) -> None:
-    _serve(Connection(fd))
+def main(fd: int, estimator_pid: int) -> None:
+    """The second process, connected on ``fd`` to the estimator's process ``estimator_pid``."""
+    if not _follow_the_estimator(estimator_pid):
+        return
+    try:
+        _serve(Connection(fd))
+    except (EOFError, OSError):  # the estimator has gone (ended early, interrupted, killed): no one to answer
+        pass
 
 
 if __name__ == "__main__":
     # through the package, so the messages unpickle to the classes the worker checks against
     from dem_graph.estimators.graph_worker import main as package_main
 
-    package_main(int(sys.argv[1]))
+    package_main(int(sys.argv[1]), int(sys.argv[2]))
 
 
 __all__ = [

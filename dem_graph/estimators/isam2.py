@@ -56,7 +56,7 @@ from dem_graph.estimators.keyframe_graph import KeyframeGraph
 from dem_graph.estimators.live_points import LivePoints
 from dem_graph.estimators.measurement_log import MeasurementLog
 from dem_graph.estimators.motion import constant_velocity_increment
-from dem_graph.estimators.online_filter import OnlineFilter
+from dem_graph.estimators.online_filter import FrameMatches, OnlineFilter
 from dem_graph.estimators.point_archive import PointArchive
 from dem_graph.frontend.frontend import FrontEnd, NewPoint
 from dem_graph.geometry.lie import adjoint
@@ -64,6 +64,8 @@ from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.se3 import invert
 
 log = logging.getLogger(__name__)
+
+ONLINE_PASS_ONLY = "isam2-batch (online pass only: stopped before the batch smoothing)"
 
 
 class Isam2Slam(FrameDrivenEstimator):
@@ -133,7 +135,8 @@ class Isam2Slam(FrameDrivenEstimator):
         T_pred = filt.predict(U, Q, A)
         client.carry(U, Q, A)
         t1 = time.perf_counter()
-        m = filt.track(event.image, event.t_s, T_pred)
+        # a frame without texture (the reader marked it) is not searched: its pose is the prediction
+        m = FrameMatches(np.zeros(0, dtype=int), np.zeros((0, 2))) if event.textureless else filt.track(event.image, event.t_s, T_pred)
         t2 = time.perf_counter()
         filt.update_pose(T_pred, m, dt)
         t3 = time.perf_counter()
@@ -152,11 +155,12 @@ class Isam2Slam(FrameDrivenEstimator):
             graph_s = time.perf_counter() - tg
         tm = time.perf_counter()
         filt.end_frame(event.t_s)
-        live_uv = self._drop_points()
+        live_uv = None if event.textureless else self._drop_points()  # nothing is lost in a frame that could not show it
         map_s = time.perf_counter() - tm
         if is_keyframe:
             tg = time.perf_counter()
-            new = filt.new_points(event.image, event.t_s, self._scans.take_until(event.t_s), live_uv)
+            # no point starts in a frame without texture; its scans wait for the next frame
+            new = [] if event.textureless else filt.new_points(event.image, event.t_s, self._scans.take_until(event.t_s), live_uv)
             tn = time.perf_counter()
             self._send_keyframe(event.t_s, observations, new)
             graph_s += time.perf_counter() - tn
@@ -279,9 +283,11 @@ class Isam2Slam(FrameDrivenEstimator):
         batch_result = self._batch.result if self._batch is not None else None
         if batch_result is not None:
             return batch_result.apply_to(res, landmark_of)
+        if self._batch is not None:  # stopped before the end: what there is, is the online pass
+            res.name = ONLINE_PASS_ONLY
         if self._frames:
             res.extra_poses[SMOOTHED_TRAJECTORY] = self.smoothed_poses()
         return res
 
 
-__all__ = ["Isam2Config", "Isam2Options", "Isam2Slam", "LivePoints"]
+__all__ = ["ONLINE_PASS_ONLY", "Isam2Config", "Isam2Options", "Isam2Slam", "LivePoints"]

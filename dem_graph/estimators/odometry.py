@@ -5,6 +5,11 @@ Odometry arrives as increments ``T_prev_curr`` over ``[t_prev_s, t_s]`` with a 6
 falls between the last time asked and a new one; an increment cut by that time contributes its
 share (rotation angle and translation scaled, covariance scaled), and the rest is kept for the
 next call. A time past the last increment is extrapolated at the last increment's rate.
+
+A time no increment covers between two increments (a dropped message, or an increment the dataset
+reader skipped as beyond the vehicle's motion) is bridged the same way: at the last increment's
+rate (constant velocity), with at least that increment's whole covariance. So a missing increment
+leaves no hole in the motion.
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ import numpy as np
 from dem_graph.datasets.events import Odometry
 from dem_graph.geometry.lie import adjoint, scale_increment
 from dem_graph.geometry.se3 import invert
+
+_GAP_S = 1e-9  # an uncovered time shorter than this is rounding, not a gap
 
 
 class OdometryIntegrator:
@@ -39,24 +46,34 @@ class OdometryIntegrator:
             lo, hi = max(e.t_prev_s, covered), min(e.t_s, b)
             span = e.t_s - e.t_prev_s
             if hi > lo and span > 0:
+                if lo - covered > _GAP_S:
+                    U, Q = self._at_last_rate(U, Q, lo - covered)
                 f = (hi - lo) / span
                 part = scale_increment(e.T_prev_curr, f) if f < 1.0 - 1e-9 else e.T_prev_curr
-                A = adjoint(invert(part))
-                Q = A @ Q @ A.T + e.covariance * f
-                U = U @ part
+                U, Q = _compose(U, Q, part, e.covariance * f)
                 covered = hi
                 self._last = (e.T_prev_curr, e.covariance, span)
             if e.t_s > b:
                 keep.append(e)
-        if covered < b and self._last is not None:
-            T_rate, cov_rate, span = self._last
-            f = (b - covered) / span
-            part = scale_increment(T_rate, f)
-            A = adjoint(invert(part))
-            Q = A @ Q @ A.T + cov_rate * max(f, 1.0)
-            U = U @ part
+        if covered < b:
+            U, Q = self._at_last_rate(U, Q, b - covered)
         self._events = keep
         self._cursor_s = b
         if not np.any(Q):
             Q = np.eye(6) * 1e-6
         return U, Q
+
+    def _at_last_rate(self, U: np.ndarray, Q: np.ndarray, duration_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(U, Q)`` followed by ``duration_s`` at the last increment's rate, with at least its whole
+        covariance; unchanged before the first increment."""
+        if self._last is None:
+            return U, Q
+        T_rate, cov_rate, span = self._last
+        f = duration_s / span
+        return _compose(U, Q, scale_increment(T_rate, f), cov_rate * max(f, 1.0))
+
+
+def _compose(U: np.ndarray, Q: np.ndarray, part: np.ndarray, Q_part: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The motion ``U`` then ``part``, and its covariance (right perturbation): ``Q`` carried through ``part`` plus ``Q_part``."""
+    A = adjoint(invert(part))
+    return U @ part, A @ Q @ A.T + Q_part

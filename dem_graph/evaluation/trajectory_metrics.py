@@ -15,6 +15,7 @@ Numpy and scipy only, plus gtsam's ``Pose3.Logmap`` for the NEES. No files, no p
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import asdict, dataclass
 
@@ -26,6 +27,8 @@ from dem_graph.errors import DemGraphError
 from dem_graph.evaluation.results import MetricsModel, Number
 from dem_graph.geometry.se3 import invert
 from dem_graph.geometry.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -53,6 +56,21 @@ class TrajectoryMetrics:
     def as_dict(self) -> dict:
         """The fields as plain Python numbers (``float``, ``int`` for ``n_poses``), for JSON."""
         return {k: (int(v) if k == "n_poses" else float(v)) for k, v in asdict(self).items()}
+
+
+def within_truth_span(estimate: Trajectory, truth: Trajectory) -> tuple[Trajectory | None, np.ndarray]:
+    """The part of ``estimate`` inside the truth's time span (None with fewer than two samples
+    there), and which samples that is; a warning
+    when the truth covers only part of the run (its metrics are then over that part)."""
+    lo, hi = truth.t_s[0], truth.t_s[-1]
+    eps = 1e-9 * max(1.0, abs(hi))  # the tolerance Trajectory.at accepts
+    covered = (estimate.t_s >= lo - eps) & (estimate.t_s <= hi + eps)
+    if not covered.all():
+        log.warning(
+            "the ground truth spans %.3f to %.3f s and covers %d of the run's %d frames: the trajectory metrics are over those",
+            lo, hi, int(covered.sum()), len(covered),
+        )  # fmt: skip
+    return (estimate.slice(lo - eps, hi + eps) if covered.sum() >= 2 else None), covered
 
 
 def trajectory_errors(estimate: Trajectory, truth: Trajectory) -> TrajectoryErrors:

@@ -3,18 +3,35 @@
 Loaded from and written to YAML (:func:`load_rig`, :func:`save_rig`), validated on load.
 Extrinsics are ``T_body_cam`` and ``T_body_laser``; the paper's P_{L-C} is
 :attr:`SensorRig.T_cam_laser`.
+
+Every value a run uses is checked where the models are made, once, whatever the source (a rig
+file, a bag's rig and tf, a KITTI calibration): focal lengths, rates and noise figures finite and
+positive, the principal point inside the image, the distortion finite, the transforms rigid, the
+laser's range limits and beams sound. A bad value is a :class:`ConfigError` naming the source and
+the field, as in ``rig.yaml: camera.cx_px is nan; it must be a finite pixel coordinate inside the image``.
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Literal, TypeVar
 
 import numpy as np
 import yaml
-from pydantic import BeforeValidator, Field, PlainSerializer, ValidationError, WithJsonSchema, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    Field,
+    PlainSerializer,
+    ValidationError,
+    ValidationInfo,
+    WithJsonSchema,
+    field_validator,
+)
 
-from dem_graph.config_types import StrictModel, format_validation_error
+from dem_graph.config_types import StrictModel
 from dem_graph.errors import ConfigError
 from dem_graph.geometry.camera import PinholeCamera
 from dem_graph.geometry.se3 import check_pose, invert, make_pose, rotation_from_rpy
@@ -23,9 +40,35 @@ from dem_graph.geometry.se3 import check_pose, invert, make_pose, rotation_from_
 def _to_pose(value) -> np.ndarray:
     # the field name is attached by pydantic's error location; check_pose gives the problem
     try:
-        return check_pose(value, "transform")
-    except Exception as exc:  # turned into a pydantic validation error with the field's location
-        raise ValueError(str(exc)) from None
+        return check_pose(value, "")
+    except ConfigError as exc:  # turned into a pydantic validation error with the field's location
+        raise ValueError(exc.problem.strip()) from None
+
+
+def _refuse(value, requirement: str):
+    """The error of a field whose ``value`` breaks ``requirement`` (read after the field's name)."""
+    return ValueError(f"is {value!r}; it must be {requirement}")
+
+
+def _finite(requirement: str, minimum: float = -math.inf, strictly: bool = False):
+    """A validator: the value is finite and at least (``strictly``: above) ``minimum``, else refused
+    with ``requirement``."""
+
+    def check(value: float) -> float:
+        low_ok = value > minimum if strictly else value >= minimum
+        if not (math.isfinite(value) and low_ok):
+            raise _refuse(value, requirement)
+        return value
+
+    return AfterValidator(check)
+
+
+PositiveFloat = Annotated[float, _finite("a finite number above 0", 0.0, strictly=True)]
+"""A finite float above 0 (rates, focal lengths)."""
+NonNegativeFloat = Annotated[float, _finite("a finite number, 0 or more", 0.0)]
+"""A finite float of 0 or more (noise figures)."""
+FiniteFloat = Annotated[float, _finite("a finite number")]
+"""Any finite float (angles)."""
 
 
 Pose4x4 = Annotated[
@@ -40,16 +83,34 @@ Pose4x4 = Annotated[
 class CameraSpec(StrictModel):
     width_px: int = Field(800, gt=0, description="image width, pixels")
     height_px: int = Field(600, gt=0, description="image height, pixels")
-    fx_px: float = Field(560.0, gt=0, description="focal length along x, pixels")
-    fy_px: float = Field(560.0, gt=0, description="focal length along y, pixels")
-    cx_px: float = Field(399.5, description="principal point x, pixels (OpenCV: pixel centres at integers)")
-    cy_px: float = Field(299.5, description="principal point y, pixels")
+    fx_px: PositiveFloat = Field(560.0, description="focal length along x, pixels")
+    fy_px: PositiveFloat = Field(560.0, description="focal length along y, pixels")
+    cx_px: float = Field(399.5, description="principal point x, pixels (OpenCV: pixel centres at integers), inside the image")
+    cy_px: float = Field(299.5, description="principal point y, pixels, inside the image")
     distortion: tuple[float, float, float, float, float] = Field(
         (-0.05, 0.01, 0.0, 0.0, 0.0), description="OpenCV radial-tangential coefficients k1, k2, p1, p2, k3"
     )
-    rate_hz: float = Field(25.0, gt=0, description="frame rate, Hz")
-    noise_sigma_dn: float = Field(2.0, ge=0, description="image noise standard deviation, grey levels (0-255)")
+    rate_hz: PositiveFloat = Field(25.0, description="frame rate, Hz")
+    noise_sigma_dn: NonNegativeFloat = Field(2.0, description="image noise standard deviation, grey levels (0-255)")
     T_body_cam: Pose4x4 = Field(description="camera pose in the body frame (camera axes OpenCV: x right, y down, z forward)")
+
+    @field_validator("cx_px", "cy_px")
+    @classmethod
+    def _inside_image(cls, value: float, info: ValidationInfo) -> float:
+        size_px = info.data.get("width_px" if info.field_name == "cx_px" else "height_px")
+        inside = math.isfinite(value) and (size_px is None or -0.5 <= value <= size_px - 0.5)
+        if not inside:
+            span = "" if size_px is None else f" (-0.5 to {size_px - 0.5:g})"
+            raise _refuse(value, f"a finite pixel coordinate inside the image{span}")
+        return value
+
+    @field_validator("distortion")
+    @classmethod
+    def _finite_distortion(cls, value: tuple) -> tuple:
+        for name, k in zip(("k1", "k2", "p1", "p2", "k3"), value):
+            if not math.isfinite(k):
+                raise ValueError(f"has {name} = {k!r}; every coefficient must be a finite number")
+        return value
 
     @property
     def model(self) -> PinholeCamera:
@@ -60,9 +121,17 @@ class PlanarBeams(StrictModel):
     """A planar scanner's beams in the laser's x-y plane, angles from +x towards +y (ROS LaserScan)."""
 
     kind: Literal["planar"] = "planar"
-    angle_min_rad: float = Field(-np.pi / 2, description="angle of the first beam, radians")
-    angle_increment_rad: float = Field(np.radians(0.5), gt=0, description="angle between beams, radians")
+    angle_min_rad: FiniteFloat = Field(-np.pi / 2, description="angle of the first beam, radians")
+    angle_increment_rad: PositiveFloat = Field(np.radians(0.5), description="angle between beams, radians")
     count: int = Field(361, gt=0, description="number of beams")
+
+    @field_validator("count")
+    @classmethod
+    def _at_most_a_turn(cls, value: int, info: ValidationInfo) -> int:
+        step_rad = info.data.get("angle_increment_rad")
+        if step_rad is not None and (value - 1) * step_rad > 2.0 * np.pi + 1e-9:
+            raise ValueError(f"is {value}; {value} beams every {step_rad:g} rad span more than a full turn")
+        return value
 
     def directions(self) -> np.ndarray:
         a = self.angle_min_rad + self.angle_increment_rad * np.arange(self.count)
@@ -96,16 +165,18 @@ class DirectionBeams(StrictModel):
 class LaserSpec(StrictModel):
     T_body_laser: Pose4x4 = Field(description="laser pose in the body frame")
     beams: Annotated[PlanarBeams | DirectionBeams, Field(discriminator="kind")] = Field(default_factory=PlanarBeams)
-    range_min_m: float = Field(0.1, ge=0, description="shortest valid range, metres")
-    range_max_m: float = Field(30.0, gt=0, description="longest valid range, metres")
-    range_sigma_m: float = Field(0.02, ge=0, description="range noise standard deviation, metres")
-    rate_hz: float = Field(12.5, gt=0, description="scan rate, Hz")
+    range_min_m: NonNegativeFloat = Field(0.1, description="shortest valid range, metres")
+    range_max_m: PositiveFloat = Field(30.0, description="longest valid range, metres, above range_min_m")
+    range_sigma_m: NonNegativeFloat = Field(0.02, description="range noise standard deviation, metres")
+    rate_hz: PositiveFloat = Field(12.5, description="scan rate, Hz")
 
-    @model_validator(mode="after")
-    def _ranges(self):
-        if self.range_max_m <= self.range_min_m:
-            raise ValueError("range_max_m must be larger than range_min_m")
-        return self
+    @field_validator("range_max_m")
+    @classmethod
+    def _above_range_min(cls, value: float, info: ValidationInfo) -> float:
+        range_min_m = info.data.get("range_min_m")
+        if range_min_m is not None and value <= range_min_m:
+            raise _refuse(value, f"larger than range_min_m = {range_min_m!r}")
+        return value
 
     def beam_directions(self) -> np.ndarray:
         """(B,3) unit beam directions in the laser frame."""
@@ -123,14 +194,14 @@ class LaserSpec(StrictModel):
 class OdometrySpec(StrictModel):
     """Wheel odometry: rate and noise densities per square root of distance travelled."""
 
-    rate_hz: float = Field(50.0, gt=0, description="odometry rate, Hz")
-    sigma_scale: float = Field(0.01, ge=0, description="standard deviation of the distance scale error (slip), fraction")
-    sigma_forward_m_per_sqrt_m: float = Field(0.01, ge=0, description="forward white noise, m per sqrt(m)")
-    sigma_lateral_m_per_sqrt_m: float = Field(0.01, ge=0, description="lateral white noise, m per sqrt(m)")
-    sigma_vertical_m_per_sqrt_m: float = Field(0.02, ge=0, description="vertical white noise, m per sqrt(m)")
-    sigma_yaw_rad_per_sqrt_m: float = Field(np.radians(0.5), ge=0, description="yaw noise, rad per sqrt(m)")
-    sigma_roll_pitch_rad_per_sqrt_m: float = Field(np.radians(1.0), ge=0, description="roll and pitch noise, rad per sqrt(m)")
-    min_distance_m: float = Field(0.01, gt=0, description="distance floor for the noise model (standing still), m")
+    rate_hz: PositiveFloat = Field(50.0, description="odometry rate, Hz")
+    sigma_scale: NonNegativeFloat = Field(0.01, description="standard deviation of the distance scale error (slip), fraction")
+    sigma_forward_m_per_sqrt_m: NonNegativeFloat = Field(0.01, description="forward white noise, m per sqrt(m)")
+    sigma_lateral_m_per_sqrt_m: NonNegativeFloat = Field(0.01, description="lateral white noise, m per sqrt(m)")
+    sigma_vertical_m_per_sqrt_m: NonNegativeFloat = Field(0.02, description="vertical white noise, m per sqrt(m)")
+    sigma_yaw_rad_per_sqrt_m: NonNegativeFloat = Field(np.radians(0.5), description="yaw noise, rad per sqrt(m)")
+    sigma_roll_pitch_rad_per_sqrt_m: NonNegativeFloat = Field(np.radians(1.0), description="roll and pitch noise, rad per sqrt(m)")
+    min_distance_m: PositiveFloat = Field(0.01, description="distance floor for the noise model (standing still), m")
 
     def white_noise_covariance(self, distance_m: float) -> np.ndarray:
         """6x6 covariance of the independent (white) part of one increment over ``distance_m``,
@@ -146,6 +217,10 @@ class OdometrySpec(StrictModel):
         cov = self.white_noise_covariance(distance_m)
         cov[3, 3] += (self.sigma_scale * max(float(distance_m), self.min_distance_m)) ** 2
         return cov
+
+    def covariance_of(self, T_prev_curr: np.ndarray) -> np.ndarray:
+        """:meth:`increment_covariance` for the increment ``T_prev_curr``: its length is the norm of its translation."""
+        return self.increment_covariance(float(np.linalg.norm(np.asarray(T_prev_curr)[:3, 3])))
 
 
 class SensorRig(StrictModel):
@@ -209,11 +284,29 @@ def default_rig() -> SensorRig:
     )
 
 
-def rig_from_dict(data: dict, source: str | Path | None = None) -> SensorRig:
+Model = TypeVar("Model", bound=BaseModel)
+
+
+def _problem(error: dict, field_prefix: str) -> str:
+    """One pydantic error as ``field problem``: a check of this module reads on after the field's name."""
+    loc = ".".join(str(x) for x in (field_prefix, *error["loc"]) if x != "") or "(top level)"
+    if error["type"] == "value_error":
+        return f"{loc} {error['ctx']['error']}"
+    return f"{loc}: {error['msg']}"
+
+
+def validated(model: type[Model], data: dict, source: str | Path | None = None, field_prefix: str = "") -> Model:
+    """``model`` made from ``data``. A bad value is a :class:`ConfigError` naming ``source`` and the
+    field (``field_prefix`` put before its path, e.g. "camera" for a :class:`CameraSpec`)."""
     try:
-        return SensorRig.model_validate(data)
+        return model.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(f"invalid rig: {format_validation_error(exc)}", source) from None
+        raise ConfigError("; ".join(_problem(e, field_prefix) for e in exc.errors()), source) from None
+
+
+def rig_from_dict(data: dict, source: str | Path | None = None) -> SensorRig:
+    """A validated rig from a mapping; a bad value is a :class:`ConfigError` naming ``source`` and the field."""
+    return validated(SensorRig, data, source)
 
 
 def load_rig(path: str | Path) -> SensorRig:

@@ -12,6 +12,8 @@
 
 from __future__ import annotations
 
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -76,7 +78,7 @@ def read_dem_npz(path: str | Path) -> Dem:
             frame = str(data["frame"]) if "frame" in data else "world"
             n_meas = int(data["n_measurements"]) if "n_measurements" in data else 0
             n_used = int(data["n_used"]) if "n_used" in data else 0
-    except (OSError, ValueError, EOFError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise DatasetError(path, f"not a readable .npz file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
     for name, a in layers.items():
         if a.shape != g.shape:

@@ -76,6 +76,9 @@ class RunConfig(SharedSettings):
         description="give each event to the estimator when its time since the first event has passed on the wall clock, as the sensors would on the "
         "vehicle; false: as fast as the estimator takes them. Matters with isam2.graph_process, whose graph then keeps up as it would live",
     )
+    checkpoint_every_s: float = Field(
+        10.0, gt=0, description="wall-clock seconds between writes of the trajectory and map points so far into the run folder (what Ctrl-C, a kill or a late fault keeps)"
+    )
     blas_threads: int = Field(1, ge=1, description="threads numpy's linear algebra may use while the estimator runs (the matrices are small; README, Benchmarks: one thread against two)")
     dem: DemConfig = Field(default_factory=DemConfig, description="the dense DEM made from the run's poses")
     local_error: LocalErrorConfig = Field(default_factory=LocalErrorConfig, description="the Fig. 8 measure: the local DEM's error ahead of the vehicle (with truth)")

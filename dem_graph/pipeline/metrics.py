@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import numpy as np
@@ -11,9 +12,18 @@ from dem_graph.datasets.base import Sequence
 from dem_graph.estimators.base import EstimatorResult
 from dem_graph.evaluation.results import MetricsModel
 from dem_graph.evaluation.timing import PhaseTiming, frame_timing_summary
-from dem_graph.evaluation.trajectory_metrics import NeesSummary, TrajectoryAccuracy, accuracy_summary, nees_summary, pose_nees
+from dem_graph.evaluation.trajectory_metrics import (
+    NeesSummary,
+    TrajectoryAccuracy,
+    accuracy_summary,
+    nees_summary,
+    pose_nees,
+    within_truth_span,
+)
 from dem_graph.pipeline.live_run import LiveMapMetrics
 from dem_graph.pipeline.run_dem import DemFailure, DemMetrics
+
+log = logging.getLogger(__name__)
 
 
 class PointsPerFrame(MetricsModel):
@@ -60,11 +70,16 @@ def compute_metrics(sequence: Sequence, res: EstimatorResult, error: str | None 
     metrics.events = dict(sorted(res.counters.items()))
     gt = sequence.ground_truth
     if gt is not None and len(res.frames) > 1:
-        est = res.trajectory()
+        est, covered = within_truth_span(res.trajectory(), gt.trajectory)
+        if est is None:
+            log.warning("the ground truth covers %d of the run's %d frames: no trajectory metrics", int(covered.sum()), len(covered))
+            return metrics
         metrics.trajectory = accuracy_summary(est, gt.trajectory)
         for name, extra in res.extra_trajectories().items():
-            setattr(metrics, name, accuracy_summary(extra, gt.trajectory))
-        metrics.pose_nees = nees_summary(pose_nees(est.poses_se3, gt.trajectory.at(est.t_s), res.pose_covariances()))
+            extra_covered = within_truth_span(extra, gt.trajectory)[0]
+            if extra_covered is not None:
+                setattr(metrics, name, accuracy_summary(extra_covered, gt.trajectory))
+        metrics.pose_nees = nees_summary(pose_nees(est.poses_se3, gt.trajectory.at(est.t_s), res.pose_covariances()[covered]))
     return metrics
 
 

@@ -18,6 +18,7 @@ class RunResult:
     config: RunConfig
     metrics: RunMetrics = field(default_factory=RunMetrics)
     error: str | None = None  # set when the loop stopped early; the result holds what was done
+    interrupted: bool = False  # stopped by Ctrl-C or SIGTERM (``error`` says after how many frames)
     elapsed_s: float = 0.0
     dem: RunDem | None = None  # the dense DEM from the run's poses (None if it could not be made)
     paths: dict[str, Path] = field(default_factory=dict)  # the run folder's files, once written

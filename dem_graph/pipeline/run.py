@@ -21,8 +21,9 @@ from threadpoolctl import threadpool_limits
 from dem_graph.datasets.base import Sequence
 from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
 from dem_graph.datasets.open import DatasetOptions, open_dataset
-from dem_graph.errors import DemGraphError
+from dem_graph.errors import DemGraphError, one_line
 from dem_graph.estimators.base import Estimator
+from dem_graph.pipeline.checkpoint import RunCheckpoint, StopRequest, stop_at_event_boundaries
 from dem_graph.pipeline.config import RunConfig, RunOverrides, run_config
 from dem_graph.pipeline.live import LivePipeline
 from dem_graph.pipeline.live import make_estimator as make_estimator_for
@@ -31,7 +32,7 @@ from dem_graph.pipeline.live_view import ViewerListener, ViewerOptions
 from dem_graph.pipeline.metrics import compute_metrics
 from dem_graph.pipeline.result import RunResult
 from dem_graph.pipeline.run_dem import DemFailure, RunDem, dem_from_result, make_run_dem
-from dem_graph.pipeline.run_folder import write_run
+from dem_graph.pipeline.run_folder import prepare_run_folder, write_run, write_run_config
 from dem_graph.progress import progress
 
 log = logging.getLogger(__name__)
@@ -42,15 +43,25 @@ def make_estimator(sequence: Sequence, config: RunConfig) -> Estimator:
     return make_estimator_for(sequence.rig, sequence.T_world_body_initial, sequence.t_start_s, sequence.has_odometry, config)
 
 
-def feed(estimator: Estimator | LivePipeline, sequence: Sequence, max_frames: int | None = None, finish: bool = True, realtime: bool = False) -> Iterator[int]:
+def feed(
+    estimator: Estimator | LivePipeline,
+    sequence: Sequence,
+    max_frames: int | None = None,
+    finish: bool = True,
+    realtime: bool = False,
+    stop: StopRequest | None = None,
+) -> Iterator[int]:
     """Give the sequence's events to ``estimator`` in time order (with a progress bar), up to
     ``max_frames`` camera frames, then call its ``finish`` (unless ``finish`` is false). Yields the
     number of camera frames given so far after each one. With ``realtime`` an event is given no
     sooner than its time after the first event's has passed on the wall clock (an estimator that
-    falls behind gets the next one at once, as from a sensor's buffer)."""
+    falls behind gets the next one at once, as from a sensor's buffer). ``stop``: checked before
+    each event (KeyboardInterrupt once a stop was asked for)."""
     frames = 0
     t0_s = wall0_s = None
     for event in progress(sequence.events(), total=sequence.event_count(), desc=estimator.name, unit="event"):
+        if stop is not None:
+            stop.check()
         if realtime:
             if t0_s is None:
                 t0_s, wall0_s = event.t_s, time.perf_counter()
@@ -85,10 +96,21 @@ def with_dataset_speed(sequence: Sequence, config: RunConfig) -> RunConfig:
     return config
 
 
-def run_estimator(sequence: Sequence, config: RunConfig | None = None, with_dem: bool = True, viewer: ViewerOptions | None = None) -> RunResult:
+def run_estimator(
+    sequence: Sequence,
+    config: RunConfig | None = None,
+    with_dem: bool = True,
+    viewer: ViewerOptions | None = None,
+    checkpoint_dir: str | Path | None = None,
+) -> RunResult:
     """Run ``config``'s estimator over ``sequence`` in a :class:`LivePipeline` (the live map built as
     the events come, measured against the truth as the guidance had it), then make the run's
     metrics and its DEM from the final poses. ``viewer``: show it in rerun as it goes, or record it.
+    ``checkpoint_dir``: the run folder, where the trajectory and map points so far are kept current
+    every ``config.checkpoint_every_s`` (:mod:`~dem_graph.pipeline.checkpoint`).
+
+    Ctrl-C, SIGTERM (main thread) or an error part way stops the loop, not the run: what was
+    estimated up to there is returned with ``error`` saying why, and its metrics and DEM are made.
 
     ``config`` is taken as it is (make it with :func:`~dem_graph.pipeline.config.run_config` to
     have the dataset's own run settings under it); None: the defaults with the dataset's settings,
@@ -99,20 +121,37 @@ def run_estimator(sequence: Sequence, config: RunConfig | None = None, with_dem:
     shown = ViewerListener(pipeline, viewer, sequence.ground_truth) if viewer is not None else None
     if shown is not None:
         pipeline.listeners.append(shown)
+    checkpoint = RunCheckpoint(pipeline, checkpoint_dir, config.checkpoint_every_s) if checkpoint_dir is not None else None
+    if checkpoint is not None:
+        pipeline.listeners.append(checkpoint)
     start = time.perf_counter()
-    error = None
+    error, interrupted = None, False
     frames = 0
     try:
-        with threadpool_limits(limits=config.blas_threads, user_api="blas"):
-            for frames in feed(pipeline, sequence, config.max_frames, realtime=config.realtime):  # noqa: B007 - read in the handler below
+        with threadpool_limits(limits=config.blas_threads, user_api="blas"), stop_at_event_boundaries() as stop:
+            for frames in feed(pipeline, sequence, config.max_frames, realtime=config.realtime, stop=stop):  # noqa: B007 - read in the handler below
                 pass
     except DemGraphError as exc:
         error = str(exc)
         log.error("run stopped after %d frames: %s", frames, exc)
+    except KeyboardInterrupt as exc:
+        interrupted = True
+        error = f"interrupted after {frames} frames ({str(exc) or 'Ctrl-C'})"
+        log.error("run %s: keeping what was done", error)
+    except Exception as exc:  # noqa: BLE001 - a fault late in a long run must not lose the run
+        error = f"stopped after {frames} frames by an internal error: {type(exc).__name__}: {one_line(exc)}"
+        log.error("run %s (please report it; -vv shows where)", error)
+        log.debug("internal error", exc_info=True)
     if shown is not None:
         shown.close()
-    result = pipeline.result()
-    run = RunResult(result, config, error=error, elapsed_s=time.perf_counter() - start, live=live)
+    try:
+        result = pipeline.result()
+    except Exception as exc:  # a second Ctrl-C inside a frame tears the estimator's state
+        where = f": {checkpoint_dir} keeps the trajectory and map points of the last checkpoint" if checkpoint_dir is not None else ""
+        raise DemGraphError(
+            f"the run's results could not be gathered after it stopped ({error}; {type(exc).__name__}: {one_line(exc)}){where}"
+        ) from None
+    run = RunResult(result, config, error=error, interrupted=interrupted, elapsed_s=time.perf_counter() - start, live=live)
     run.metrics = compute_metrics(sequence, result, error, run.elapsed_s)
     if result.frames:
         run.metrics.live_map = live.metrics()
@@ -126,7 +165,9 @@ def run_dem(run: RunResult, sequence: Sequence) -> RunDem | None:
     try:
         returns, poses = dem_from_result(run.estimator, sequence, run.config.dem)
         half_width = run.config.frontend.focus.corridor_width_m / 2.0
-        dem = make_run_dem(returns, poses, sequence.ground_truth, run.config.dem, corridor_half_width_m=half_width, local_error=run.config.local_error)
+        dem = make_run_dem(
+            returns, poses, sequence.ground_truth, run.config.dem, corridor_half_width_m=half_width, local_error=run.config.local_error
+        )
     except DemGraphError as exc:
         log.warning("no DEM for this run: %s", exc)
         run.metrics.dem = DemFailure(error=str(exc))
@@ -143,17 +184,25 @@ def run_dataset(
     dataset_options: DatasetOptions | None = None,
     fmt: str | None = None,
     viewer: ViewerOptions | None = None,
+    overwrite: bool = False,
 ) -> RunResult:
     """What ``dem-graph run DATASET`` runs: the dataset opened (a folder, KITTI or a ROS bag, told from
     the path unless ``fmt``; or a :class:`Sequence` already open), its configuration layered
     (defaults < the dataset's run settings < ``config_file`` < ``overrides``), the estimator run,
     and, with ``out_dir``, the run folder written (``result.paths``); ``viewer``: shown or recorded in rerun. A run that stopped early
-    (``result.error``) is written too, up to where it stopped."""
+    (``result.error``: an error, Ctrl-C or SIGTERM) is written too, up to where it stopped.
+
+    ``out_dir`` is made ready before any estimating (:func:`~dem_graph.pipeline.run_folder.prepare_run_folder`:
+    writable, and an earlier run in it refused unless ``overwrite``), and is kept current as the run goes."""
     if isinstance(dataset, Sequence):
         sequence, where = dataset, getattr(dataset, "path", None)
     else:
         sequence, where = open_dataset(dataset, fmt, dataset_options), dataset
-    result = run_estimator(sequence, run_config(sequence, config_file, overrides), viewer=viewer)
+    config = run_config(sequence, config_file, overrides)
+    if out_dir is not None:
+        prepare_run_folder(out_dir, overwrite)
+        write_run_config(out_dir, config)
+    result = run_estimator(sequence, config, viewer=viewer, checkpoint_dir=out_dir)
     if where is not None:
         result.metrics.dataset = str(Path(where).resolve())
     result.metrics.dataset_options = sequence.open_options()

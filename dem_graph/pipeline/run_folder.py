@@ -23,6 +23,9 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -93,6 +96,41 @@ def json_text(data: dict, what: str = "data") -> str:
         raise DemGraphError(f"{what} cannot be written as JSON: {exc}") from None
 
 
+RUN_FILES = (TRAJECTORY_TUM, METRICS_JSON, CONFIG_YAML, POSES_NPZ, POINTS_PLY)
+
+
+def prepare_run_folder(out_dir: str | Path, overwrite: bool = False) -> Path:
+    """Make ``out_dir`` ready for a run before any estimating: created if needed and checked
+    writable. A folder holding an earlier run (any of :data:`RUN_FILES`) is refused unless
+    ``overwrite``, which empties it first, so that no file of the earlier run can pass for this
+    one's. A folder holding other files is never emptied. :class:`DatasetError` naming the folder."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise DatasetError(out, "is a file, not a folder: give --out a folder")
+    if out.is_dir():
+        entries = sorted(out.iterdir())
+        earlier = [e.name for e in entries if e.name in RUN_FILES]
+        if entries and not earlier:
+            raise DatasetError(
+                out, f"holds {len(entries)} files that are not a run's ({entries[0].name}, ...): give an empty or new folder"
+            )
+        if earlier and not overwrite:
+            raise DatasetError(out, f"holds an earlier run ({', '.join(earlier)}): give --overwrite to replace it, or another --out")
+        for entry in entries if earlier else ():
+            try:
+                shutil.rmtree(entry) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
+            except OSError as exc:
+                raise DatasetError(entry, f"cannot remove the earlier run's file ({exc.strerror or exc})") from None
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".dem_graph_write_test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise DatasetError(out, f"cannot write the run folder here ({exc.strerror or exc})") from None
+    return out
+
+
 def write_json(path: str | Path, data: dict, what: str = "data") -> Path:
     """Write ``data`` to ``path`` as :func:`json_text`; :class:`DatasetError` naming the file if it cannot."""
     path = Path(path)
@@ -125,10 +163,7 @@ def write_run_outputs(
             raise DemGraphError(f"extra trajectory name {name!r} is not a plain file stem other than {', '.join(_RESERVED)}")
 
     metrics_text = json_text(metrics, "metrics")
-    try:
-        config_text = yaml.safe_dump(_plain(config, nan_to_none=False), sort_keys=False)
-    except yaml.YAMLError as exc:
-        raise DemGraphError(f"config cannot be written as YAML: {exc}") from None
+    config_text = _config_text(config)
 
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -149,6 +184,20 @@ def write_run_outputs(
         paths[name] = out_dir / f"{name}.tum"
         write_tum(paths[name], extra)
     return paths
+
+
+def _config_text(config: dict) -> str:
+    try:
+        return yaml.safe_dump(_plain(config, nan_to_none=False), sort_keys=False)
+    except yaml.YAMLError as exc:
+        raise DemGraphError(f"config cannot be written as YAML: {exc}") from None
+
+
+def write_run_config(out_dir: str | Path, config: RunConfig) -> Path:
+    """The run's ``config.yaml`` alone, as the run starts: the folder says what run it holds."""
+    path = Path(out_dir) / CONFIG_YAML
+    _write_text(path, _config_text(config.model_dump(mode="json")))
+    return path
 
 
 def write_dem_outputs(out_dir: str | Path, dem: Dem, returns: GroundReturns | None = None, trajectory_xy: np.ndarray | None = None) -> dict[str, Path]:
@@ -220,7 +269,7 @@ def load_run_poses(run_dir: str | Path) -> PoseTrack:
             if missing:
                 raise DatasetError(path, f"no {', '.join(missing)} in the file")
             t, T, P = (np.asarray(data[k], dtype=float) for k in ("t_s", "T_world_body", "covariance"))
-    except (OSError, ValueError, EOFError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise DatasetError(path, f"not a readable .npz file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
     try:
         return PoseTrack(t, T, P)
@@ -361,9 +410,11 @@ __all__ = [
     "POSES_NPZ",
     "TRAJECTORY_TUM",
     "json_text",
+    "RUN_FILES",
     "live_map_of_run",
     "load_run_points",
     "load_run_poses",
+    "prepare_run_folder",
     "read_run_metrics",
     "remake_dem",
     "run_folder_config",
@@ -375,5 +426,6 @@ __all__ = [
     "write_local_error_csv",
     "write_run",
     "write_run_dem",
+    "write_run_config",
     "write_run_outputs",
 ]

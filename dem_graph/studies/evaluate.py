@@ -27,7 +27,7 @@ from dem_graph.datasets.base import GroundTruth, Sequence
 from dem_graph.datasets.open import open_sequence
 from dem_graph.errors import DatasetError, DemGraphError
 from dem_graph.estimators.base import EXTRA_TRAJECTORIES
-from dem_graph.evaluation.trajectory_metrics import TrajectoryAccuracy, accuracy_summary
+from dem_graph.evaluation.trajectory_metrics import TrajectoryAccuracy, accuracy_summary, within_truth_span
 from dem_graph.io.tum import read_tum
 from dem_graph.pipeline.metrics import RunMetrics
 from dem_graph.pipeline.run_dem import DemFailure, DemMetrics, RunDem
@@ -100,7 +100,11 @@ class RunEvaluation:
 
 
 def _trajectory_accuracy(path: Path, truth: GroundTruth) -> TrajectoryAccuracy:
-    estimate = read_tum(path)
+    estimate, covered = within_truth_span(read_tum(path), truth.trajectory)
+    if estimate is None:
+        raise DatasetError(
+            path, f"cannot be compared with the ground truth: {int(covered.sum())} of its {len(covered)} times lie inside the truth's span"
+        )
     try:
         return accuracy_summary(estimate, truth.trajectory)
     except DemGraphError as exc:
@@ -141,7 +145,16 @@ def evaluate_run(run_dir: str | Path, sequence: Sequence | str | Path, with_dem:
         else:
             metrics.dem = DemFailure(error=f"no {POSES_NPZ} in the run folder to make the DEM from")
     dataset = str(getattr(sequence, "path", sequence.name))
+    _warn_if_another_dataset(run_dir, own.get("dataset"), dataset)
     return RunEvaluation(run_dir, dataset, metrics, dem)
+
+
+def _warn_if_another_dataset(run_dir: Path, recorded: str | None, dataset: str) -> None:
+    """A warning when the run folder names another dataset than the one it is evaluated against."""
+    if recorded and Path(recorded).resolve() != Path(dataset).resolve():
+        log.warning(
+            "%s was made from %s, not %s: these metrics compare it with another dataset's truth", run_dir / METRICS_JSON, recorded, dataset
+        )
 
 
 __all__ = ["EVALUATION_JSON", "METRICS_JSON", "RunEvaluation", "evaluate_run", "require_ground_truth"]

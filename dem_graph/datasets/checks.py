@@ -1,0 +1,303 @@
+"""Checks of what a log holds, shared by the dataset readers: bad input refused in one line, faults survived.
+
+A reader refuses (:class:`~dem_graph.errors.DatasetError` naming the file, the line or index, and
+the problem) what no run can use:
+
+- a clock fault: a time in a sensor stream more than :attr:`InputChecks.max_gap_s` after the one
+  before it (or after the log's start). A robot's sensors do not fall silent for that long in a
+  log that goes on; a clock that jumped would stretch the map over empty time. The reader does not
+  guess where the log should be cut: the message names the line, the user fixes or cuts the log;
+- an odometry covariance that is not one: not finite, not symmetric, a negative variance, not
+  positive definite;
+- an image of another size than the rig's camera.
+
+It repairs, skips or marks, with one logged warning, what a run can go on without:
+
+- an all-zero odometry covariance (ROS's "unknown"): replaced by the rig's odometry noise model for
+  that increment's length (:meth:`~dem_graph.geometry.rig.OdometrySpec.covariance_of`);
+- an odometry increment faster than the vehicle can move (:attr:`InputChecks.max_speed_mps`,
+  :attr:`InputChecks.max_rotation_rate_rad_s`): skipped; the estimators' odometry integration
+  bridges its time at the last increment's rate (:mod:`dem_graph.estimators.odometry`);
+- a camera frame without texture (grey-level standard deviation below
+  :attr:`InputChecks.min_image_std_dn`): marked ``CameraFrame.textureless``, for the estimator to
+  predict its pose and track nothing in it;
+- a log with no laser scan: said when it is opened.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from dem_graph.config_types import StrictModel
+from dem_graph.datasets.events import CameraFrame
+from dem_graph.errors import DatasetError
+from dem_graph.geometry.rig import CameraSpec, OdometrySpec
+
+log = logging.getLogger(__name__)
+
+SYMMETRY_RTOL = 1e-6
+"""A covariance is symmetric when no entry differs from its mirror by more than this part of its largest entry."""
+
+_AXES = ("rotation x", "rotation y", "rotation z", "translation x", "translation y", "translation z")  # gtsam order
+
+
+class InputChecks(StrictModel):
+    """The limits a log's readers hold it to, with defaults a field robot fits."""
+
+    max_gap_s: float = Field(
+        10.0,
+        gt=0,
+        description="a sensor's time stamp more than this after the one before it (or after the log's start) is a clock fault: the log is refused, seconds",
+    )
+    max_speed_mps: float = Field(
+        10.0, gt=0, description="an odometry increment faster than this is skipped (bridged at the last increment's rate), m/s"
+    )
+    max_rotation_rate_rad_s: float = Field(
+        2.0, gt=0, description="an odometry increment turning faster than this (its whole rotation angle over its time) is skipped, rad/s"
+    )
+    min_image_std_dn: float = Field(
+        2.0,
+        ge=0,
+        description="a camera frame whose grey levels' standard deviation is below this has no texture: marked, not tracked, grey levels (0-255)",
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# time stamps
+
+
+def first_time_jump(t_s: np.ndarray, t_start_s: float | None, max_gap_s: float) -> int | None:
+    """The first index whose time is more than ``max_gap_s`` after the one before it (index 0: after
+    ``t_start_s``, unless None), or None."""
+    t_s = np.asarray(t_s, dtype=float)
+    if len(t_s) == 0:
+        return None
+    before_s = np.concatenate([[t_s[0] if t_start_s is None else t_start_s], t_s[:-1]])
+    jumps = np.flatnonzero(t_s - before_s > max_gap_s)
+    return int(jumps[0]) if len(jumps) else None
+
+
+def check_time_jumps(where: str | Path, t_s: np.ndarray, t_start_s: float | None, checks: InputChecks, label: Callable[[int], str]) -> None:
+    """Refuse a clock fault in one stream: a :class:`DatasetError` at ``where`` naming the item
+    (``label(i)``, e.g. "line 42: t_s") whose time jumps more than ``checks.max_gap_s`` forward from
+    the one before (the first: from ``t_start_s``, unless None)."""
+    i = first_time_jump(t_s, t_start_s, checks.max_gap_s)
+    if i is None:
+        return
+    before_s, before = (float(t_s[i - 1]), "the one before") if i else (float(t_start_s), "the log's start")
+    raise DatasetError(
+        where,
+        f"{label(i)} = {float(t_s[i])!r} s is {float(t_s[i]) - before_s:.3f} s after {before} ({before_s!r} s), more than "
+        f"input_checks.max_gap_s = {checks.max_gap_s:g} s: a clock fault (correct the time stamps, or cut the log there)",
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# odometry covariances
+
+
+def unknown_covariances(covariance: np.ndarray) -> np.ndarray:
+    """Mask of the (n,6,6) covariances that are all zero: ROS's convention for "unknown"."""
+    return ~np.any(np.asarray(covariance) != 0.0, axis=(1, 2))
+
+
+def covariance_problems(covariance: np.ndarray) -> tuple[int, str, int] | None:
+    """The first of the (n,6,6) matrices that is not a covariance, why, and how many are not; None
+    when all are. Each must be finite, symmetric (to :data:`SYMMETRY_RTOL` of its largest entry),
+    with no negative variance, and positive definite."""
+    C = np.asarray(covariance, dtype=float).reshape(-1, 6, 6)
+    finite = np.all(np.isfinite(C), axis=(1, 2))
+    C = np.where(finite[:, None, None], C, 0.0)  # the other checks read finite numbers
+    scale = np.max(np.abs(C), axis=(1, 2))
+    asymmetry = np.max(np.abs(C - np.swapaxes(C, 1, 2)), axis=(1, 2))
+    symmetric = asymmetry <= SYMMETRY_RTOL * scale
+    variances = np.diagonal(C, axis1=1, axis2=2)
+    negative = np.any(variances < 0, axis=1)
+    smallest = np.linalg.eigvalsh(0.5 * (C + np.swapaxes(C, 1, 2)))[:, 0] if len(C) else np.zeros(0)
+
+    def asymmetric(i: int) -> str:
+        return (
+            f"is not symmetric (entries differ from their mirror by up to {asymmetry[i]:.3g}, {asymmetry[i] / scale[i]:.2g} of the largest)"
+        )
+
+    def negative_variance(i: int) -> str:
+        k = int(np.argmin(variances[i]))
+        return f"has a negative variance: {_AXES[k]} [{k},{k}] = {float(variances[i, k])!r}"
+
+    faults = [  # in the order they are told
+        (~finite, lambda i: "contains NaN or infinite values"),
+        (finite & ~symmetric, asymmetric),
+        (finite & symmetric & negative, negative_variance),
+        (
+            finite & symmetric & ~negative & ~(smallest > 0),
+            lambda i: f"is not positive definite (smallest eigenvalue {float(smallest[i]):.3g})",
+        ),
+    ]
+    bad = np.any([mask for mask, _ in faults], axis=0) if len(C) else np.zeros(0, dtype=bool)
+    if not bad.any():
+        return None
+    first = int(np.argmax(bad))
+    tell = next(tell for mask, tell in faults if mask[first])
+    return first, tell(first), int(bad.sum())
+
+
+def check_covariances(where: str | Path, covariance: np.ndarray, name: str = "covariance") -> None:
+    """Refuse an odometry covariance that is not one (:func:`covariance_problems`); all-zero ones
+    (unknown) pass, for :func:`repair_unknown_covariances`. A :class:`DatasetError` at ``where``
+    naming ``name[index]`` and the problem."""
+    known = np.flatnonzero(~unknown_covariances(covariance))
+    found = covariance_problems(covariance[known])
+    if found is not None:
+        i, problem, _ = found
+        raise DatasetError(where, f"{name}[{int(known[i])}] {problem}")
+
+
+def repair_unknown_covariances(where: str | Path, covariance: np.ndarray, T_prev_curr: np.ndarray, spec: OdometrySpec | None) -> np.ndarray:
+    """``covariance`` with each all-zero (unknown) one replaced by ``spec``'s noise model for that
+    increment's length (the default model when the rig has none); one warning says how many."""
+    unknown = np.flatnonzero(unknown_covariances(covariance))
+    if len(unknown) == 0:
+        return covariance
+    model = spec if spec is not None else OdometrySpec()
+    repaired = covariance.copy()
+    for i in unknown:
+        repaired[i] = model.covariance_of(T_prev_curr[i])
+    log.warning(
+        "%s: %d of %d odometry covariances are all zero (unknown, as in ROS; first: index %d): replaced by %s for each increment's length",
+        where,
+        len(unknown),
+        len(covariance),
+        int(unknown[0]),
+        "the rig's odometry noise model" if spec is not None else "the default odometry noise model (the rig has no odometry block)",
+    )
+    return repaired
+
+
+# ----------------------------------------------------------------------------------------------
+# odometry motion
+
+
+def rotation_angle_rad(R: np.ndarray) -> np.ndarray:
+    """The rotation angle (n,) of rotations (n,3,3), 0 to pi."""
+    return np.arccos(np.clip((np.einsum("nii->n", R) - 1.0) / 2.0, -1.0, 1.0))
+
+
+def increment_rates(T_prev_curr: np.ndarray, dt_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Speed (m/s) and rotation rate (rad/s) of each increment (n,4,4) over its time ``dt_s`` (n,);
+    an increment that moves in no time is infinitely fast."""
+    T = np.asarray(T_prev_curr, dtype=float).reshape(-1, 4, 4)
+    dt_s = np.asarray(dt_s, dtype=float)
+    distance_m = np.linalg.norm(T[:, :3, 3], axis=1)
+    angle_rad = rotation_angle_rad(T[:, :3, :3])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        speed_mps = np.where(dt_s > 0, distance_m / dt_s, np.where(distance_m > 0, np.inf, 0.0))
+        rate_rad_s = np.where(dt_s > 0, angle_rad / dt_s, np.where(angle_rad > 0, np.inf, 0.0))
+    return speed_mps, rate_rad_s
+
+
+def plausible_increments(where: str | Path, T_prev_curr: np.ndarray, dt_s: np.ndarray, checks: InputChecks) -> np.ndarray:
+    """Mask of the increments the vehicle can make (no faster than ``checks.max_speed_mps`` and
+    ``checks.max_rotation_rate_rad_s``). The others are to be skipped: one warning says how many
+    and the first, with its figures."""
+    speed_mps, rate_rad_s = increment_rates(T_prev_curr, dt_s)
+    too_fast, turns_too_fast = speed_mps > checks.max_speed_mps, rate_rad_s > checks.max_rotation_rate_rad_s
+    ok = ~(too_fast | turns_too_fast)
+    if not ok.all():
+        i = int(np.argmin(ok))
+        why = (
+            f"{speed_mps[i]:.3g} m/s > input_checks.max_speed_mps = {checks.max_speed_mps:g} m/s"
+            if too_fast[i]
+            else f"{rate_rad_s[i]:.3g} rad/s > input_checks.max_rotation_rate_rad_s = {checks.max_rotation_rate_rad_s:g} rad/s"
+        )
+        log.warning(
+            "%s: %d of %d odometry increments are beyond the vehicle's motion (first: index %d, %s): skipped, their time bridged at the last increment's rate",
+            where,
+            int((~ok).sum()),
+            len(ok),
+            i,
+            why,
+        )
+    return ok
+
+
+# ----------------------------------------------------------------------------------------------
+# images and scans
+
+
+def check_image_size(path: str | Path, image: np.ndarray, camera: CameraSpec) -> None:
+    """Refuse an image of another size than the rig's camera: a :class:`DatasetError` naming the image."""
+    height_px, width_px = image.shape[:2]
+    if (width_px, height_px) != (camera.width_px, camera.height_px):
+        raise DatasetError(
+            path,
+            f"image is {width_px}x{height_px} px but the rig's camera is {camera.width_px}x{camera.height_px} px "
+            "(camera.width_px x camera.height_px): the rig is not this camera's",
+        )
+
+
+def image_std_dn(image: np.ndarray) -> float:
+    """Standard deviation of the image's grey levels (a BGR image made grey first), DN."""
+    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+    return float(cv2.meanStdDev(grey)[1][0, 0])
+
+
+class TextureWatch:
+    """Marks the camera frames without texture (:attr:`InputChecks.min_image_std_dn`) and warns once
+    for each stretch of them, when it begins."""
+
+    def __init__(self, where: str | Path, checks: InputChecks):
+        self.where = where
+        self.min_image_std_dn = checks.min_image_std_dn
+        self._stretch_start: int | None = None  # index of the first frame of the stretch going on
+
+    def frame(self, frame: CameraFrame, std_dn: float | None = None, where: str | Path | None = None) -> CameraFrame:
+        """``frame``, marked ``textureless`` when its grey levels' deviation (``std_dn``, computed when
+        None) is below the limit; a warning names ``where`` (the image's file; None: the stream's)."""
+        std_dn = image_std_dn(frame.image) if std_dn is None else std_dn
+        if std_dn >= self.min_image_std_dn:
+            if self._stretch_start is not None:
+                log.info("%s: frames %d to %d had no texture", self.where, self._stretch_start, frame.index - 1)
+            self._stretch_start = None
+            return frame
+        if self._stretch_start is None:
+            self._stretch_start = frame.index
+            log.warning(
+                "%s: frame %d at %.3f s has no texture (grey-level std %.2f DN < input_checks.min_image_std_dn = %g DN): "
+                "not tracked, its pose predicted, until a frame with texture comes",
+                self.where if where is None else where,
+                frame.index,
+                frame.t_s,
+                std_dn,
+                self.min_image_std_dn,
+            )
+        return dataclasses.replace(frame, textureless=True)
+
+
+def warn_if_no_laser(where: str | Path, n_scans: int) -> None:
+    """Say when a log has no laser scan at all: the map then holds camera points only."""
+    if n_scans == 0:
+        log.warning("%s: no laser scans: the map will hold only camera points", where)
+
+
+__all__ = [
+    "InputChecks",
+    "TextureWatch",
+    "check_covariances",
+    "check_image_size",
+    "check_time_jumps",
+    "covariance_problems",
+    "first_time_jump",
+    "image_std_dn",
+    "increment_rates",
+    "plausible_increments",
+    "repair_unknown_covariances",
+    "unknown_covariances",
+    "warn_if_no_laser",
+]
