@@ -32,7 +32,7 @@ from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.pipeline.config import ESTIMATORS, RunConfig, run_config
 from dem_graph.pipeline.metrics import RunMetrics
 from dem_graph.pipeline.run import run_estimator
-from dem_graph.pipeline.run_folder import write_json, write_run
+from dem_graph.pipeline.run_folder import prepare_run_folder, write_json, write_run
 from dem_graph.progress import progress
 from dem_graph.studies.headline import COLUMNS, format_value, headline
 from dem_graph.studies.report import Figure, ReportPage
@@ -129,6 +129,7 @@ def _run_one(sequence: Sequence, config: RunConfig, name: str, run_dir: Path, da
         result = run_estimator(sequence, cfg)
         result.metrics.dataset = dataset
         result.metrics.dataset_options = sequence.open_options()
+        prepare_run_folder(run_dir, overwrite=True)  # no file of an earlier comparison's run stays beside this one's
         write_run(result, run_dir)
     except DemGraphError as exc:
         log.error("%s failed: %s", name, exc)
