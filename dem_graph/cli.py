@@ -199,6 +199,32 @@ def dem(run_dir, dataset, at_s, hindsight, resolution_m, out_dir) -> None:
 
 
 @main.command()
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output dataset folder.")
+@click.option("--camera-gap", multiple=True, metavar="T0:T1", help="No camera frame from T0 to T1 s (a blackout); repeatable.")
+@click.option("--laser-gap", multiple=True, metavar="T0:T1", help="No laser scan from T0 to T1 s; repeatable.")
+@click.option("--odometry-gap", multiple=True, metavar="T0:T1", help="No odometry message from T0 to T1 s; repeatable.")
+@click.option("--black-frames", multiple=True, metavar="T0:T1", help="Frames from T0 to T1 s arrive black; repeatable.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
+@_dataset_options
+@_friendly_errors
+def degrade(dataset, out_dir, camera_gap, laser_gap, odometry_gap, black_frames, overwrite, **kwargs) -> None:
+    """Write a copy of a dataset with sensor faults put in (gaps, black frames), to measure how the
+    estimators survive them. Times are the log's own clock, seconds; the ground truth is kept whole."""
+    from dem_graph.datasets.faults import Faults, parse_interval, write_faulty_dataset
+
+    options = _pop_dataset_options(kwargs)
+    faults = Faults(
+        camera_gaps=tuple(parse_interval(t) for t in camera_gap),
+        laser_gaps=tuple(parse_interval(t) for t in laser_gap),
+        odometry_gaps=tuple(parse_interval(t) for t in odometry_gap),
+        black_frames=tuple(parse_interval(t) for t in black_frames),
+    )
+    path = write_faulty_dataset(_open_dataset(dataset, options.pop("fmt"), **options), faults, out_dir, overwrite=overwrite)
+    click.echo(f"{faults.describe()}: {path}")
+
+
+@main.command()
 @click.argument("run_dir", metavar="RUN", type=click.Path(path_type=Path))
 @click.option("--truth", "dataset", required=True, type=click.Path(path_type=Path), help="Dataset folder with ground truth (the one the run was made from).")
 @click.option("--out", "out_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="JSON file to write [default: RUN/evaluation.json].")
@@ -420,7 +446,7 @@ def calibrate(
     board = _calibration_board(data.board, board_corners, square_m)
     if board is None:
         raise click.UsageError(f"the board's size is not known ({recording} does not give it): give --board COLSxROWS and --square-m")
-    rig = load_rig(rig_path) if rig_path else rig_from_recording(data, range_sigma_m)
+    rig = load_rig(rig_path) if rig_path else rig_from_recording(data, range_sigma_m, source=recording)
     result = calibrate_recording(data, options, board)
     paths = write_calibration(result, data, rig, out_dir, max_dt_s)
     used = sum(v.used for v in result.views)

@@ -122,6 +122,20 @@ def test_command_reports_a_missing_recording_in_one_line(tmp_path):
     assert run.exit_code == 2 and "recording folder not found" in run.output
 
 
+def test_a_nan_in_the_recordings_intrinsics_is_refused_naming_the_field(tmp_path):
+    from dem_graph.cli import main
+
+    sim = simulate_calibration(seed=5, n_views=3, range_sigma_m=0.01)
+    write_recording(sim, tmp_path / "rec", seed=5, samples=1)
+    xml = next((tmp_path / "rec").rglob("out_camera_data.xml"))
+    intr, board = read_opencv_intrinsics(xml)
+    write_opencv_intrinsics(Intrinsics(intr.K, np.array([0.1, np.nan, 0.0, 0.0, 0.0]), intr.width_px, intr.height_px), board, xml)
+    run = CliRunner().invoke(main, ["calibrate", str(tmp_path / "rec"), "--out", str(tmp_path / "out")])
+    assert run.exit_code == 2 and run.stderr.count("\n") == 1, run.output
+    assert str(tmp_path / "rec") in run.stderr and "camera.distortion" in run.stderr
+    assert not (tmp_path / "out" / "rig.yaml").exists()
+
+
 @pytest.mark.shared_data
 def test_real_hokuyo_recording_calibrates_end_to_end():
     if not HOKUYO.is_dir():

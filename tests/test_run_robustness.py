@@ -60,14 +60,18 @@ def test_a_folder_of_other_files_is_never_emptied(tmp_path):
     assert (tmp_path / "thesis.tex").read_text() == "precious"
 
 
-def test_an_unwritable_out_is_refused_before_estimating(smoke_folder, tmp_path):
+def test_an_unwritable_out_is_refused_before_estimating(smoke_folder, tmp_path, monkeypatch):
+    import dem_graph.pipeline.run as run_module
+
+    def no_estimating(*args, **kwargs):
+        raise AssertionError("the estimator was run before the run folder was checked")
+
+    monkeypatch.setattr(run_module, "run_estimator", no_estimating)
     blocker = tmp_path / "file"
     blocker.write_text("")
-    t0 = time.perf_counter()
     r = CliRunner().invoke(main, ["--no-progress", "run", str(smoke_folder), "--estimator", "gm", "--out", str(blocker / "run")])
     assert r.exit_code == 2 and r.stderr.count("\n") == 1
     assert "cannot write the run folder here" in r.stderr and str(blocker) in r.stderr
-    assert time.perf_counter() - t0 < 10  # refused at once, not after the estimation
 
 
 def test_the_cli_refuses_an_earlier_run_and_replaces_it_with_overwrite(full_run, tmp_path, smoke_folder):
@@ -137,7 +141,7 @@ def test_a_signal_ends_the_run_between_frames_and_keeps_it(smoke_folder, tmp_pat
     assert p.returncode == 130 and stderr.strip().splitlines()[-1].startswith("dem-graph: error: interrupted after")
     m = read_run_metrics(out)
     n = m["frames"]
-    assert 5 < n < 64 and m["error"].startswith("interrupted")
+    assert 1 <= n < 64 and m["error"].startswith("interrupted")  # stopped part-way (how far depends on the machine's load)
     saved = read_tum(out / "trajectory.tum")  # the frames done, exactly as an uninterrupted run made them
     np.testing.assert_allclose(saved.positions_xyz, run.estimator.trajectory().positions_xyz[:n], atol=1e-9)
     assert (out / "dem.tif").is_file() and (out / "live_map.tif").is_file()

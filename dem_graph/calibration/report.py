@@ -17,27 +17,31 @@ from dem_graph.calibration.laser_line import points_from_ranges
 from dem_graph.calibration.pipeline import CalibrationResult
 from dem_graph.calibration.readers import CalibrationRecording, pair_nearest
 from dem_graph.errors import DatasetError
-from dem_graph.geometry.rig import CameraSpec, LaserSpec, PlanarBeams, SensorRig, save_rig
+from dem_graph.geometry.rig import SensorRig, save_rig, validated
 
 
-def rig_from_recording(recording: CalibrationRecording, range_sigma_m: float = 0.02) -> SensorRig:
-    """A rig with the recording's camera (at the body origin) and its scanner's beams; ``T_cam_laser`` is the identity."""
+def rig_from_recording(recording: CalibrationRecording, range_sigma_m: float = 0.02, source: str | Path | None = None) -> SensorRig:
+    """A rig with the recording's camera (at the body origin) and its scanner's beams; ``T_cam_laser`` is the identity.
+
+    Every value is validated as a rig file's would be: a bad one is a :class:`ConfigError` naming
+    ``source`` (the recording) and the field."""
     intr, scans = recording.intrinsics, recording.scans
-    K = intr.K
-    camera = CameraSpec(
-        width_px=intr.width_px,
-        height_px=intr.height_px,
-        fx_px=float(K[0, 0]),
-        fy_px=float(K[1, 1]),
-        cx_px=float(K[0, 2]),
-        cy_px=float(K[1, 2]),
-        distortion=tuple(float(x) for x in intr.distortion),
-        T_body_cam=np.eye(4).tolist(),
-    )
-    beams = PlanarBeams(angle_min_rad=scans.angle_min_rad, angle_increment_rad=scans.angle_increment_rad, count=scans.n_beams)
+    K = np.asarray(intr.K, dtype=float)
+    camera = {
+        "width_px": int(intr.width_px),
+        "height_px": int(intr.height_px),
+        "fx_px": float(K[0, 0]),
+        "fy_px": float(K[1, 1]),
+        "cx_px": float(K[0, 2]),
+        "cy_px": float(K[1, 2]),
+        "distortion": [float(x) for x in intr.distortion],
+        "T_body_cam": np.eye(4).tolist(),
+    }
+    beams = {"angle_min_rad": float(scans.angle_min_rad), "angle_increment_rad": float(scans.angle_increment_rad), "count": int(scans.n_beams)}
     finite = scans.ranges_m[np.isfinite(scans.ranges_m)]
     range_max = float(max(finite.max() if finite.size else 30.0, 1.0))
-    return SensorRig(camera=camera, laser=LaserSpec(T_body_laser=np.eye(4).tolist(), beams=beams, range_max_m=range_max, range_sigma_m=range_sigma_m))
+    laser = {"T_body_laser": np.eye(4).tolist(), "beams": beams, "range_max_m": range_max, "range_sigma_m": float(range_sigma_m)}
+    return validated(SensorRig, {"camera": camera, "laser": laser}, source)
 
 
 def rig_with_calibration(rig: SensorRig, result: CalibrationResult) -> SensorRig:

@@ -43,8 +43,6 @@ from __future__ import annotations
 import csv
 import io
 import math
-import zipfile
-import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -69,6 +67,7 @@ from dem_graph.errors import ConfigError, DatasetError
 from dem_graph.geometry.rig import CameraSpec, SensorRig, load_rig, save_rig
 from dem_graph.geometry.se3 import check_pose
 from dem_graph.io.geotiff import read_elevation, write_elevation
+from dem_graph.io.npz import read_npz
 from dem_graph.io.tum import read_tum, write_tum
 from dem_graph.progress import progress
 
@@ -180,30 +179,6 @@ def _initial_pose(path: Path, T) -> np.ndarray:
 def _require_file(path: Path, what: str) -> None:
     if not path.is_file():
         raise DatasetError(path, f"{what} not found" if not path.exists() else f"{what} is not a regular file")
-
-
-def _load_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
-    # the file is opened here so that it is closed even when numpy fails half-way through np.load
-    try:
-        with open(path, "rb") as f:
-            try:
-                archive = np.load(f, allow_pickle=False)
-            except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-                raise DatasetError(path, f"not a readable npz archive ({exc})") from None
-            if not isinstance(archive, np.lib.npyio.NpzFile):
-                raise DatasetError(path, "not an npz archive (a single .npy array)")
-            with archive:
-                arrays = {}
-                for key in keys:
-                    if key not in archive.files:
-                        raise DatasetError(path, f"missing array {key!r} (has: {', '.join(archive.files) or 'none'})")
-                    try:
-                        arrays[key] = archive[key]
-                    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-                        raise DatasetError(path, f"array {key!r} is corrupt ({exc})") from None
-    except OSError as exc:
-        raise DatasetError(path, f"cannot read ({exc.strerror or exc})") from None
-    return arrays
 
 
 def _read_metadata(path: Path) -> dict:
@@ -358,7 +333,7 @@ class FolderSequence(Sequence):
 
         laser_path = root / LASER_NPZ
         _require_file(laser_path, "laser scans")
-        laser = _load_npz(laser_path, ("t_s", "ranges_m"))
+        laser = read_npz(laser_path, ("t_s", "ranges_m"))
         _check_laser(laser_path, laser["t_s"], laser["ranges_m"], beam_count, self._t_start_s)
         self._scan_t_s = laser["t_s"].astype(np.float64)
         self._scan_ranges_m = laser["ranges_m"].astype(np.float32)
@@ -368,7 +343,7 @@ class FolderSequence(Sequence):
         self._has_odometry = odometry_path.exists()
         if self._has_odometry:
             _require_file(odometry_path, "odometry")
-            odo = _load_npz(odometry_path, ("t_s", "t_prev_s", "T_prev_curr", "covariance"))
+            odo = read_npz(odometry_path, ("t_s", "t_prev_s", "T_prev_curr", "covariance"))
             _check_odometry(
                 odometry_path, odo["t_s"], odo["t_prev_s"], odo["T_prev_curr"], odo["covariance"], self._t_start_s
             )
@@ -435,6 +410,10 @@ class FolderSequence(Sequence):
     @property
     def n_frames(self) -> int:
         return len(self._frame_t_s)
+
+    def camera_times(self) -> np.ndarray:
+        """Every frame's time (n,), seconds, from camera.csv."""
+        return self._frame_t_s.copy()
 
     @property
     def n_scans(self) -> int:

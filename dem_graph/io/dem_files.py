@@ -12,8 +12,6 @@
 
 from __future__ import annotations
 
-import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +21,7 @@ from dem_graph.dem.returns import GroundReturns
 from dem_graph.errors import DatasetError
 from dem_graph.geometry.grid import GridGeometry
 from dem_graph.io.geotiff import write_elevation_geotiff
+from dem_graph.io.npz import read_npz
 from dem_graph.io.ply import write_points_ply
 
 _FIRST = ("variance", "count")
@@ -66,20 +65,15 @@ def write_dem_npz(path: str | Path, dem: Dem) -> Path:
 def read_dem_npz(path: str | Path) -> Dem:
     """A DEM written by :func:`write_dem_npz`; :class:`DatasetError` naming the file if it is not one."""
     path = Path(path)
-    if not path.is_file():
-        raise DatasetError(path, "file not found")
+    data = read_npz(path, _GEOMETRY_KEYS, ("frame", "n_measurements", "n_used"), prefix="layer_")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            missing = [k for k in _GEOMETRY_KEYS if k not in data]
-            if missing:
-                raise DatasetError(path, f"not a DEM file: no {', '.join(missing)}")
-            g = GridGeometry(float(data["x_min_m"]), float(data["y_max_m"]), float(data["resolution_m"]), int(data["n_rows"]), int(data["n_cols"]))
-            layers = {k[len("layer_"):]: np.asarray(data[k]) for k in data.files if k.startswith("layer_")}
-            frame = str(data["frame"]) if "frame" in data else "world"
-            n_meas = int(data["n_measurements"]) if "n_measurements" in data else 0
-            n_used = int(data["n_used"]) if "n_used" in data else 0
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-        raise DatasetError(path, f"not a readable .npz file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        g = GridGeometry(float(data["x_min_m"]), float(data["y_max_m"]), float(data["resolution_m"]), int(data["n_rows"]), int(data["n_cols"]))
+        layers = {k[len("layer_"):]: np.asarray(data[k]) for k in data if k.startswith("layer_")}
+        frame = str(data["frame"]) if "frame" in data else "world"
+        n_meas = int(data["n_measurements"]) if "n_measurements" in data else 0
+        n_used = int(data["n_used"]) if "n_used" in data else 0
+    except (TypeError, ValueError) as exc:
+        raise DatasetError(path, f"not a DEM file ({exc})") from None
     for name, a in layers.items():
         if a.shape != g.shape:
             raise DatasetError(path, f"layer {name!r} has shape {a.shape}, the grid is {g.shape}")

@@ -46,7 +46,7 @@ class LiveMapMetrics(MetricsModel):
     resident_memory_mb: dict[str, float] | None = None  # the process's, at frames 150, 1500 and the last
     scans: int
     returns: int  # laser returns placed
-    returns_moved: int  # re-placed because their poses were revised
+    returns_moved: int  # re-placements because their poses were revised (a return moved in n revisions counts n times)
     scans_moved: int
     map_points: int
     tiles: int

@@ -114,7 +114,7 @@ def summary_lines(m: RunMetrics) -> list[str]:
         lines.append(f"DEM: not made ({d.error})")
     lm = m.live_map
     if lm is not None:
-        line = f"live map: {lm.covered_cells} cells, update median {lm.update_median_ms:.2f} ms, p95 {lm.update_p95_ms:.2f} ms; {lm.returns_moved} of {lm.returns} returns moved by revisions"
+        line = f"live map: {lm.covered_cells} cells, update median {lm.update_median_ms:.2f} ms, p95 {lm.update_p95_ms:.2f} ms; {lm.returns} returns, re-placed {lm.returns_moved} times by revisions"
         lw = lm.local_window
         if lw is not None and lw.frames_with_data:
             line += f"; Fig. 8 as the guidance had it: mean error {100 * lw.mean_of_mean_m:.1f} cm, std {100 * lw.mean_of_std_m:.1f} cm"

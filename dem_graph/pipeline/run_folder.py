@@ -24,8 +24,6 @@ from __future__ import annotations
 import json
 import math
 import shutil
-import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +41,7 @@ from dem_graph.evaluation.dem_metrics import LocalErrorSeries
 from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.io.dem_files import write_cloud_ply, write_dem_geotiff, write_dem_npz
 from dem_graph.io.live_maps import live_map_at
+from dem_graph.io.npz import read_npz
 from dem_graph.io.ply import read_points_ply, write_points_ply
 from dem_graph.io.tum import write_tum
 from dem_graph.pipeline.config import RunConfig, run_config
@@ -261,16 +260,11 @@ def save_run_poses(path: str | Path, poses: PoseTrack) -> Path:
 
 def load_run_poses(run_dir: str | Path) -> PoseTrack:
     path = Path(run_dir) / POSES_NPZ
-    if not path.is_file():
-        raise DatasetError(path, "not found: is this a run folder written by `dem-graph run`?")
+    data = read_npz(path, ("t_s", "T_world_body", "covariance"), missing_hint="is this a run folder written by `dem-graph run`?")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            missing = [k for k in ("t_s", "T_world_body", "covariance") if k not in data]
-            if missing:
-                raise DatasetError(path, f"no {', '.join(missing)} in the file")
-            t, T, P = (np.asarray(data[k], dtype=float) for k in ("t_s", "T_world_body", "covariance"))
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-        raise DatasetError(path, f"not a readable .npz file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        t, T, P = (np.asarray(data[k], dtype=float) for k in ("t_s", "T_world_body", "covariance"))
+    except (TypeError, ValueError) as exc:
+        raise DatasetError(path, f"an array is not numeric ({exc})") from None
     try:
         return PoseTrack(t, T, P)
     except DemGraphError as exc:  # the track's own checks: shapes, NaN, times not increasing
