@@ -143,7 +143,7 @@ def _pop_dataset_options(kwargs: dict) -> dict:
 def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_dir, overwrite, config_path, max_points, no_odometry, max_frames, viewer, record_path, **kwargs) -> None:
     """Run an estimator over a dataset (folder, KITTI or ROS bag); write trajectory.tum, points.ply, metrics.json, config.yaml
     (isam2 also trajectory_smoothed.tum; isam2-batch also trajectory_online.tum)."""
-    from dem_graph.pipeline.config import RunOverrides
+    from dem_graph.pipeline.config import GRAPH_ESTIMATORS, RunOverrides, configured_estimator
     from dem_graph.pipeline.live_view import ViewerOptions
     from dem_graph.pipeline.metrics import summary_lines
     from dem_graph.pipeline.run import run_dataset
@@ -154,6 +154,11 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_
         estimator=estimator, max_frames=max_frames, max_points=max_points, no_odometry=no_odometry, lag_s=lag_s,
         keyframe_every=keyframe_every, graph_process=graph_process, realtime=realtime,
     )
+    graph_only = overrides.graph_only()
+    if graph_only:
+        chosen = configured_estimator(config_path, overrides)
+        if chosen not in GRAPH_ESTIMATORS:
+            raise click.UsageError(f"{', '.join(graph_only)}: used only by --estimator {' or '.join(GRAPH_ESTIMATORS)}, not by {chosen} (the run's estimator): leave {'it' if len(graph_only) == 1 else 'them'} out or choose one of those")
     shown = ViewerOptions(spawn=viewer, record_path=record_path) if viewer or record_path else None
     result = run_dataset(dataset, overrides, config_path, out_dir, _dataset_options_of(options), fmt, viewer=shown, overwrite=overwrite)
     for line in summary_lines(result.metrics):
@@ -175,6 +180,7 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_
 def dem(run_dir, dataset, at_s, hindsight, resolution_m, out_dir) -> None:
     """Make a run's DEM again from its poses (global), or show the local map at a time: the live one
     the guidance had (from RUN/live_maps.nc), or with --hindsight one made from the final poses."""
+    from dem_graph.pipeline.metrics import laser_cells_error_text
     from dem_graph.pipeline.run_dem import DemMetrics
     from dem_graph.pipeline.run_folder import live_map_of_run, remake_dem, write_dem_outputs, write_run_dem
 
@@ -194,7 +200,7 @@ def dem(run_dir, dataset, at_s, hindsight, resolution_m, out_dir) -> None:
     click.echo(f"DEM ({result.dem.frame}{', hindsight' if at_s is not None else ''}): {m.covered_cells} cells of {result.dem.geometry.resolution_m:g} m covered")
     e, c = (m.height_error_laser_cells, m.corridor) if isinstance(m, DemMetrics) else (None, None)  # a local map has no truth figures
     if e is not None and c is not None:
-        click.echo(f"height RMSE {100 * e.rmse_m:.1f} cm over the laser-swept cells; corridor {100 * c.coverage:.0f} % covered")
+        click.echo(f"{laser_cells_error_text(e)}; corridor {100 * c.coverage:.0f} % covered")
     click.echo(f"written: {', '.join(str(p) for p in paths.values())}")
 
 

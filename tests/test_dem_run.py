@@ -107,7 +107,7 @@ def test_dem_command_local_map_at_a_time_holds_only_earlier_measurements(run_fol
     ("args", "message"),
     [
         (["dem", "{tmp}/nowhere"], "run folder not found"),
-        (["dem", "{tmp}", "--dataset", "{log}"], "poses.npz: not found"),
+        (["dem", "{tmp}", "--dataset", "{log}"], "not a run folder written by `dem-graph run` (no poses.npz)"),
         (["dem", "{run}", "--dataset", "{log}", "--at", "99"], "outside the run's poses"),
         (["dem", "{run}", "--dataset", "{log}", "--at", "99", "--hindsight"], "outside the run's poses"),
     ],

@@ -194,7 +194,7 @@ def test_no_laser_for_two_seconds_is_warned_once_and_the_map_ages(smoke_log, cap
     with caplog.at_level(logging.WARNING):
         pipeline, updates = _live(log, dem={"map_points": False})  # laser returns only: nothing else refreshes a cell
     assert len(updates) == len(_frames(log))
-    assert sum("no laser scan for" in m for m in caplog.messages) == 1
+    assert sum("no laser scan with a return for" in m for m in caplog.messages) == 1
     assert pipeline.counters["laser_silences"] == 1
     last = updates[-1]
     assert last.t_s - gap_start > 2.0
@@ -300,3 +300,43 @@ def test_a_failing_listener_is_dropped_with_an_error_and_the_map_goes_on(smoke_l
     assert calls == [1]
     assert len(updates) == len(_frames(smoke_log))
     assert sum("the display went away" in m and "the map goes on" in m for m in caplog.messages) == 1
+
+
+def _silences(caplog) -> list[str]:
+    return [m for m in caplog.messages if " for " in m and " s (since " in m]
+
+
+def test_a_camera_that_stops_for_good_is_warned_once_by_the_other_streams(smoke_log, caplog):
+    t_stop = smoke_log.t_start_s + 0.5
+    log = smoke_log.replace_events([e for e in smoke_log.events() if not (isinstance(e, CameraFrame) and e.t_s > t_stop)])
+    last_frame = max(e.t_s for e in _frames(log))
+    with caplog.at_level(logging.WARNING):
+        pipeline, _ = _live(log, estimator="gm")
+    camera = [m for m in _silences(caplog) if m.startswith("no camera frame for")]
+    assert len(camera) == 1 and f"(since {last_frame:.3f} s)" in camera[0]
+    assert pipeline.counters["camera_silences"] == 1
+
+
+def test_scans_without_a_return_count_as_a_silent_laser(smoke_log, caplog):
+    t_nan = smoke_log.t_start_s + 0.3
+    events = [LaserScan(e.t_s, np.full_like(e.ranges_m, np.nan), e.index) if isinstance(e, LaserScan) and e.t_s > t_nan else e for e in smoke_log.events()]
+    log = smoke_log.replace_events(events)
+    n_empty = sum(isinstance(e, LaserScan) and e.t_s > t_nan for e in events)
+    with caplog.at_level(logging.WARNING):
+        pipeline, _ = _live(log, estimator="gm")
+    assert sum(m.startswith("no laser scan with a return for") for m in _silences(caplog)) == 1
+    assert pipeline.counters["scans_without_return"] == n_empty and pipeline.counters["laser_silences"] == 1
+
+
+def test_an_odometry_gap_is_warned_when_found_and_when_it_ends(smoke_log, caplog):
+    t0 = smoke_log.t_start_s
+    gap = (t0 + 0.5, t0 + 1.5)
+    log = smoke_log.replace_events([e for e in smoke_log.events() if not (isinstance(e, Odometry) and gap[0] <= e.t_s < gap[1])])
+    last_before = max(e.t_s for e in log.events() if isinstance(e, Odometry) and e.t_s < gap[0])
+    first_after = min(e.t_s for e in log.events() if isinstance(e, Odometry) and e.t_s >= gap[1])
+    with caplog.at_level(logging.WARNING):
+        pipeline, _ = _live(log, estimator="gm")
+    found = [m for m in _silences(caplog) if m.startswith("no odometry for")]
+    assert len(found) == 1 and f"(since {last_before:.3f} s)" in found[0]
+    assert any(m.startswith(f"odometry again at {first_after:.3f} s, after {first_after - last_before:.2f} s") for m in caplog.messages)
+    assert pipeline.counters["odometry_silences"] == 1

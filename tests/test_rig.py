@@ -261,15 +261,15 @@ CASES = {
     ),
     "beam_angle_nan": (
         lambda d: d["laser"]["beams"].__setitem__("angle_min_rad", float("nan")),
-        ["laser.beams.planar.angle_min_rad is nan; it must be a finite number"],
+        ["laser.beams.angle_min_rad is nan; it must be a finite number"],
     ),
     "beam_step_zero": (
         lambda d: d["laser"]["beams"].__setitem__("angle_increment_rad", 0.0),
-        ["laser.beams.planar.angle_increment_rad is 0.0; it must be a finite number above 0"],
+        ["laser.beams.angle_increment_rad is 0.0; it must be a finite number above 0"],
     ),
     "beams_over_a_turn": (
         lambda d: d["laser"]["beams"].__setitem__("count", 1000),
-        ["laser.beams.planar.count is 1000; 1000 beams every", "span more than a full turn"],
+        ["laser.beams.count is 1000; 1000 beams every", "span more than a full turn"],
     ),
     "odometry_rate_nan": (
         lambda d: d["odometry"].__setitem__("rate_hz", float("nan")),

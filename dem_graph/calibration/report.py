@@ -37,7 +37,7 @@ def rig_from_recording(recording: CalibrationRecording, range_sigma_m: float = 0
         "distortion": [float(x) for x in intr.distortion],
         "T_body_cam": np.eye(4).tolist(),
     }
-    beams = {"angle_min_rad": float(scans.angle_min_rad), "angle_increment_rad": float(scans.angle_increment_rad), "count": int(scans.n_beams)}
+    beams = {"kind": "planar", "angle_min_rad": float(scans.angle_min_rad), "angle_increment_rad": float(scans.angle_increment_rad), "count": int(scans.n_beams)}
     finite = scans.ranges_m[np.isfinite(scans.ranges_m)]
     range_max = float(max(finite.max() if finite.size else 30.0, 1.0))
     laser = {"T_body_laser": np.eye(4).tolist(), "beams": beams, "range_max_m": range_max, "range_sigma_m": float(range_sigma_m)}

@@ -21,7 +21,12 @@ It repairs, skips or marks, with one logged warning, what a run can go on withou
 - a camera frame without texture (grey-level standard deviation below
   :attr:`InputChecks.min_image_std_dn`): marked ``CameraFrame.textureless``, for the estimator to
   predict its pose and track nothing in it;
-- a log with no laser scan: said when it is opened.
+- a camera frame bit-identical to the one before (a frozen camera driver repeating its last image):
+  marked ``textureless`` the same way. No threshold: a live sensor's noise never repeats every
+  pixel, so only a stale image does (a frame without texture is told as such, not as frozen);
+- a log with no laser scan, or whose scans hold no valid return (every range NaN or outside the
+  rig's range limits; when most finite ranges lie beyond ``laser.range_max_m``, perhaps a wrong
+  unit): said when it is opened.
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ from pydantic import Field
 from dem_graph.config_types import StrictModel
 from dem_graph.datasets.events import CameraFrame
 from dem_graph.errors import DatasetError
-from dem_graph.geometry.rig import CameraSpec, OdometrySpec
+from dem_graph.geometry.rig import CameraSpec, LaserSpec, OdometrySpec
 
 log = logging.getLogger(__name__)
 
@@ -249,23 +254,34 @@ def image_std_dn(image: np.ndarray) -> float:
 
 
 class TextureWatch:
-    """Marks the camera frames without texture (:attr:`InputChecks.min_image_std_dn`) and warns once
-    for each stretch of them, when it begins."""
+    """Marks the camera frames without texture (:attr:`InputChecks.min_image_std_dn`) and those
+    bit-identical to the frame before (frozen), and warns once for each stretch of either, when it begins."""
 
     def __init__(self, where: str | Path, checks: InputChecks):
         self.where = where
         self.min_image_std_dn = checks.min_image_std_dn
-        self._stretch_start: int | None = None  # index of the first frame of the stretch going on
+        self._stretch_start: int | None = None  # index of the first frame of the textureless stretch going on
+        self._frozen_start: int | None = None  # ... of the frozen one
+        self._previous: CameraFrame | None = None
 
     def frame(self, frame: CameraFrame, std_dn: float | None = None, where: str | Path | None = None) -> CameraFrame:
         """``frame``, marked ``textureless`` when its grey levels' deviation (``std_dn``, computed when
-        None) is below the limit; a warning names ``where`` (the image's file; None: the stream's)."""
+        None) is below the limit or when its image is the previous frame's, bit for bit; a warning
+        names ``where`` (the image's file; None: the stream's)."""
+        previous, self._previous = self._previous, frame
         std_dn = image_std_dn(frame.image) if std_dn is None else std_dn
-        if std_dn >= self.min_image_std_dn:
-            if self._stretch_start is not None:
-                log.info("%s: frames %d to %d had no texture", self.where, self._stretch_start, frame.index - 1)
+        if std_dn < self.min_image_std_dn:
+            self._end_frozen(frame)
+            return self._textureless(frame, std_dn, where)
+        if self._stretch_start is not None:
+            log.info("%s: frames %d to %d had no texture", self.where, self._stretch_start, frame.index - 1)
             self._stretch_start = None
-            return frame
+        if previous is not None and np.array_equal(frame.image, previous.image):
+            return self._frozen(frame, previous, where)
+        self._end_frozen(frame)
+        return frame
+
+    def _textureless(self, frame: CameraFrame, std_dn: float, where: str | Path | None) -> CameraFrame:
         if self._stretch_start is None:
             self._stretch_start = frame.index
             log.warning(
@@ -279,11 +295,46 @@ class TextureWatch:
             )
         return dataclasses.replace(frame, textureless=True)
 
+    def _frozen(self, frame: CameraFrame, previous: CameraFrame, where: str | Path | None) -> CameraFrame:
+        if self._frozen_start is None:
+            self._frozen_start = frame.index
+            log.warning(
+                "%s: frame %d at %.3f s is bit-identical to frame %d (a frozen camera driver repeating its image?): "
+                "not tracked, its pose predicted, until a frame that differs comes",
+                self.where if where is None else where,
+                frame.index,
+                frame.t_s,
+                previous.index,
+            )
+        return dataclasses.replace(frame, textureless=True)
 
-def warn_if_no_laser(where: str | Path, n_scans: int) -> None:
-    """Say when a log has no laser scan at all: the map then holds camera points only."""
-    if n_scans == 0:
+    def _end_frozen(self, frame: CameraFrame) -> None:
+        if self._frozen_start is not None:
+            log.info("%s: frames %d to %d repeated the frame before them", self.where, self._frozen_start, frame.index - 1)
+        self._frozen_start = None
+
+
+def warn_if_no_laser(where: str | Path, ranges_m: np.ndarray, laser: LaserSpec) -> None:
+    """Say when a log has no laser scan at all, or when none of its scans (n,B) holds a valid return
+    (:meth:`~dem_graph.geometry.rig.LaserSpec.valid_ranges`): the map then holds camera points only.
+    When most finite ranges lie beyond ``laser.range_max_m`` the warning asks after their unit."""
+    if len(ranges_m) == 0:
         log.warning("%s: no laser scans: the map will hold only camera points", where)
+        return
+    if np.any(laser.valid_ranges(ranges_m)):
+        return
+    finite = np.asarray(ranges_m)[np.isfinite(ranges_m)]
+    beyond = int(np.count_nonzero(finite > laser.range_max_m))
+    if finite.size == 0:
+        why = "every range is NaN (no return)"
+    elif beyond > finite.size / 2:
+        why = (
+            f"{beyond} of {finite.size} finite ranges lie beyond laser.range_max_m = {laser.range_max_m:g} m "
+            f"(median {float(np.median(finite)):.4g}): are they in millimetres, not metres?"
+        )
+    else:
+        why = f"every finite range lies outside laser.range_min_m to range_max_m ({laser.range_min_m:g} to {laser.range_max_m:g} m)"
+    log.warning("%s: none of the %d scans has a valid return: %s; no laser return is used, the map will hold only camera points", where, len(ranges_m), why)
 
 
 __all__ = [

@@ -8,7 +8,9 @@
 - ``odometry_gaps``: intervals with no odometry message;
 - ``black_frames``: intervals whose frames arrive but are black (a lens cap, a dead exposure).
 
-Everything else (rig, start pose, ground truth, odometry) is the wrapped log's. Written with
+Everything else (rig, start pose, ground truth, odometry) is the wrapped log's. Faults that leave
+no camera frame are refused (no run can start without one); an interval that takes nothing out (it
+lies outside the log's stream) is written with a warning. Written with
 :func:`~dem_graph.datasets.folder.write_folder_dataset` (``dem-graph degrade``), the result is an
 ordinary dataset folder whose frames and scans are renumbered; the ground truth still covers the whole
 log, so the estimate is judged over the gap too.
@@ -16,6 +18,7 @@ log, so the estimate is judged over the gap too.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterator
 from collections.abc import Sequence as Seq
@@ -26,6 +29,8 @@ import numpy as np
 from dem_graph.datasets.base import GroundTruth, Sequence
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
 from dem_graph.errors import DemGraphError
+
+log = logging.getLogger(__name__)
 
 Interval = tuple[float, float]
 
@@ -89,6 +94,8 @@ class FaultySequence(Sequence):
         self.name = base.name
         base_description = getattr(base, "description", "") or ""
         self.description = f"{base_description}; faults: {faults.describe()}".lstrip("; ")
+        self.spans_s: dict[type, list[float]] = {}  # each stream's first and last time in the wrapped log (set by events)
+        self.hits: dict[tuple[str, Interval], int] = {}  # events each interval took out or spoiled (set by events)
 
     @property
     def rig(self):
@@ -121,28 +128,67 @@ class FaultySequence(Sequence):
         return self.base.event_count()
 
     def events(self) -> Iterator[Event]:
+        """The wrapped log's events with the faults put in, renumbered per stream. Raises
+        :class:`FaultSequenceError` at the end when the faults left no camera frame of the log's."""
         f = self.faults
         counts = {CameraFrame: 0, LaserScan: 0, Odometry: 0}
+        self.spans_s, self.hits = {}, {}
         for event in self.base.events():
             t = event.t_s
-            if isinstance(event, CameraFrame):
-                if _inside(t, f.camera_gaps):
-                    continue
-                if _inside(t, f.black_frames):
-                    event = replace(event, image=np.zeros_like(event.image))
-            elif isinstance(event, LaserScan) and _inside(t, f.laser_gaps):
-                continue
-            elif isinstance(event, Odometry) and _inside(t, f.odometry_gaps):
-                continue
             kind = type(event)
+            span = self.spans_s.setdefault(kind, [t, t])
+            span[1] = t
+            if isinstance(event, CameraFrame):
+                if self._hit("camera_gaps", t):
+                    continue
+                if self._hit("black_frames", t):
+                    event = replace(event, image=np.zeros_like(event.image))
+            elif isinstance(event, LaserScan) and self._hit("laser_gaps", t):
+                continue
+            elif isinstance(event, Odometry) and self._hit("odometry_gaps", t):
+                continue
             yield replace(event, index=counts[kind])
             counts[kind] += 1
+        if counts[CameraFrame] == 0 and CameraFrame in self.spans_s:
+            raise FaultSequenceError(_no_frame_left(f.camera_gaps, self.spans_s[CameraFrame]))
+
+    def _hit(self, name: str, t_s: float) -> bool:
+        """Whether ``t_s`` lies in one of the faults' ``name`` intervals (counted for :meth:`warn_unused`)."""
+        for interval in getattr(self.faults, name):
+            if interval[0] <= t_s < interval[1]:
+                self.hits[name, interval] = self.hits.get((name, interval), 0) + 1
+                return True
+        return False
+
+    def warn_unused(self) -> None:
+        """After :meth:`events` went through the log: one warning for each interval that took nothing out."""
+        streams = {"camera_gaps": CameraFrame, "black_frames": CameraFrame, "laser_gaps": LaserScan, "odometry_gaps": Odometry}
+        for name, kind in streams.items():
+            for t0, t1 in getattr(self.faults, name):
+                if self.hits.get((name, (t0, t1))):
+                    continue
+                span = self.spans_s.get(kind)
+                one, many = _STREAM[kind]
+                where = f"the log's {many} span {span[0]:.3f} to {span[1]:.3f} s" if span else f"the log has no {one}"
+                log.warning("%s %g:%g s holds no %s (%s): the fault changes nothing", _FAULT[name], t0, t1, one, where)
+
+
+_STREAM = {CameraFrame: ("camera frame", "camera frames"), LaserScan: ("laser scan", "laser scans"), Odometry: ("odometry message", "odometry messages")}
+_FAULT = {"camera_gaps": "camera gap", "black_frames": "black frames", "laser_gaps": "laser gap", "odometry_gaps": "odometry gap"}
+
+
+def _no_frame_left(camera_gaps: tuple[Interval, ...], span_s) -> str:
+    gaps = ", ".join(f"{t0:g}:{t1:g}" for t0, t1 in camera_gaps)
+    return f"the camera gaps ({gaps} s) take out every camera frame of the log ({span_s[0]:.3f} to {span_s[1]:.3f} s): a run needs at least one"
 
 
 def write_faulty_dataset(base: Sequence, faults: Faults, out_dir, overwrite: bool = False):
     """Write ``base`` with ``faults`` as a dataset folder at ``out_dir`` and return its path.
 
     A non-empty ``out_dir`` is refused unless ``overwrite``, which replaces it (never the log being read).
+    Faults that leave no camera frame are refused (:class:`FaultSequenceError`; before anything is
+    written when ``base`` tells its frames' times, as a dataset folder does); an interval that takes
+    nothing out is warned of.
     """
     import shutil
     from pathlib import Path
@@ -154,8 +200,20 @@ def write_faulty_dataset(base: Sequence, faults: Faults, out_dir, overwrite: boo
     source = getattr(base, "path", None)
     if source is not None and out.resolve() == Path(source).resolve():
         raise DatasetError(out, "the output folder is the dataset being read")
+    camera_times = getattr(base, "camera_times", None)
+    if camera_times is not None:
+        t_s = np.asarray(camera_times())
+        if len(t_s) and all(_inside(t, faults.camera_gaps) for t in t_s):
+            raise FaultSequenceError(_no_frame_left(faults.camera_gaps, (t_s[0], t_s[-1])))
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         if not overwrite:
             raise DatasetError(out, "output folder exists and is not empty (use --overwrite)")
         shutil.rmtree(out)
-    return write_folder_dataset(FaultySequence(base, faults), out, progress_desc=f"writing {base.name} with faults")
+    faulty = FaultySequence(base, faults)
+    try:
+        path = write_folder_dataset(faulty, out, progress_desc=f"writing {base.name} with faults")
+    except FaultSequenceError:
+        shutil.rmtree(out, ignore_errors=True)  # empty or new before: nothing of the user's is lost
+        raise
+    faulty.warn_unused()
+    return path

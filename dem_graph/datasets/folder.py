@@ -5,7 +5,8 @@ A dataset is one folder::
     DIR/dataset.yaml                  metadata (below); written last, so a half-written folder does not open
     DIR/rig.yaml                      the sensor rig (dem_graph.geometry.rig.save_rig / load_rig)
     DIR/images/000000.png             camera frames in order, lossless 8-bit PNG, grey (H,W) or BGR (H,W,3)
-    DIR/camera.csv                    header ``index,t_s,file``; one line per frame, ``file`` relative to DIR
+    DIR/camera.csv                    header ``index,t_s,file`` (UTF-8, a byte-order mark allowed); one line per
+                                      frame, at least one; ``file`` relative to DIR and inside it
     DIR/laser.npz                     t_s float64 (N,); ranges_m float32 (N,B), B = the rig's beam count
     DIR/odometry.npz                  t_s, t_prev_s float64 (N,); T_prev_curr float64 (N,4,4);
                                       covariance float64 (N,6,6). Absent when the sequence has no odometry
@@ -34,8 +35,9 @@ Beyond the format, the reader holds a log to :class:`~dem_graph.datasets.checks.
 (:mod:`dem_graph.datasets.checks`): on open it refuses a clock jump in camera.csv, laser.npz or
 odometry.npz, an odometry covariance that is not one, and a first image of another size than the
 rig's camera; it repairs all-zero (unknown) covariances, skips odometry increments beyond the
-vehicle's motion and says when there is no laser scan, each with one warning. While iterating it
-refuses any image of the wrong size and marks frames without texture.
+vehicle's motion and says when there is no laser scan or no valid return, each with one warning. While
+iterating it refuses any image of the wrong size and marks frames without texture or repeating the one
+before (a frozen camera).
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -231,7 +234,7 @@ def _read_camera_csv(path: Path, root: Path, t_start_s: float) -> tuple[np.ndarr
     """Frame times, image paths and the line of each frame in ``camera.csv``."""
     _require_file(path, "camera index")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (Excel's UTF-8) is not part of the header
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(path, f"cannot read ({exc})") from None
     rows = [(n, row) for n, row in enumerate(csv.reader(io.StringIO(text)), start=1) if row]
@@ -256,6 +259,8 @@ def _read_camera_csv(path: Path, root: Path, t_start_s: float) -> tuple[np.ndarr
             raise DatasetError(path, f"line {line_no}: t_s is not a number: {t_text!r}") from None
         if not file_text:
             raise DatasetError(path, f"line {line_no}: empty file name")
+        if _outside(root, file_text):
+            raise DatasetError(path, f"line {line_no}: file {file_text!r} lies outside the dataset folder: give a path inside it, relative to it")
         image_path = root / file_text
         if not image_path.is_file():
             raise DatasetError(image_path, f"image listed in {CAMERA_CSV} (line {line_no}) not found")
@@ -269,9 +274,18 @@ def _read_camera_csv(path: Path, root: Path, t_start_s: float) -> tuple[np.ndarr
         times.append(t)
         files.append(image_path)
         lines.append(line_no)
+    if not times:
+        raise DatasetError(path, "holds no camera frame (only the header): a run needs at least one")
     t_s = np.array(times, dtype=np.float64)
     _check_times(path, "t_s", t_s, t_start_s)
     return t_s, files, lines
+
+
+def _outside(root: Path, file_text: str) -> bool:
+    """Whether an image path of camera.csv (absolute, or relative to ``root``) leads out of ``root``,
+    told from the names (a symbolic link inside the folder may lead elsewhere: it is the user's)."""
+    top = os.path.abspath(root)
+    return os.path.relpath(os.path.normpath(os.path.join(top, file_text)), top).split(os.sep)[0] == os.pardir
 
 
 def _decode_quietly(data: np.ndarray) -> np.ndarray | None:
@@ -379,7 +393,7 @@ class FolderSequence(Sequence):
 
         if self._frame_files:  # the first image, now: a rig that is not this camera's is refused before the run
             _read_frame(self._frame_files[0], self._rig.camera)
-        warn_if_no_laser(laser_path, len(self._scan_t_s))
+        warn_if_no_laser(laser_path, self._scan_ranges_m, self._rig.laser)
         dt_s = self._odo["t_s"] - self._odo["t_prev_s"]
         self._odometry_kept = np.flatnonzero(plausible_increments(odometry_path, self._odo["T_prev_curr"], dt_s, self.input_checks))
         self._order = [
@@ -432,8 +446,8 @@ class FolderSequence(Sequence):
     def events(self) -> Iterator[Event]:
         """Every event in time order (odometry, then laser, then camera at equal times); images read lazily.
 
-        Odometry increments beyond the vehicle's motion are left out; frames without texture are marked
-        ``textureless``. Raises :class:`DatasetError` naming the image when a PNG is missing, cannot be
+        Odometry increments beyond the vehicle's motion are left out; frames without texture, or
+        bit-identical to the frame before (a frozen camera), are marked ``textureless``. Raises :class:`DatasetError` naming the image when a PNG is missing, cannot be
         decoded or is not the rig's size.
         """
         odo = self._odo

@@ -28,6 +28,28 @@ class DatasetOptions:
     input_checks: InputChecks | None = None  # folder, rosbag: the limits bad input is held to (None: the defaults)
 
 
+_ROSBAG_ONLY = ("rig", "image_topic", "scan_topic", "odometry_topic", "body_frame", "camera_frame", "laser_frame")
+USED_OPTIONS: dict[str, tuple[str, ...]] = {  # the DatasetOptions each format reads
+    "folder": ("input_checks",),
+    "kitti-odometry": ("sequence", "ring"),
+    "kitti-raw": ("ring",),
+    "rosbag": (*_ROSBAG_ONLY, "input_checks"),
+}
+
+
+def check_options_used(path: str | Path, fmt: str, options: DatasetOptions, told: bool = False) -> None:
+    """Refuse options ``fmt`` does not read (a :class:`DatasetError` naming them as the command line
+    does, e.g. ``--rig`` for a dataset folder, which has its own rig.yaml): a user who gives one
+    expects it to count. ``told``: the format was told from the path, not given."""
+    unused = [name for name in DatasetOptions.__dataclass_fields__ if getattr(options, name) is not None and name not in USED_OPTIONS.get(fmt, ())]
+    if not unused:
+        return
+    flags = ", ".join(name if name == "input_checks" else "--" + name.replace("_", "-") for name in unused)
+    users = sorted({f for f, names in USED_OPTIONS.items() for name in unused if name in names})
+    how = " (the format told from the path; give --format to choose another)" if told else ""
+    raise DatasetError(path, f"{flags}: not used by the {fmt} format{how}, only by {', '.join(users)}: leave {'it' if len(unused) == 1 else 'them'} out")
+
+
 def detect_format(path: str | Path) -> str:
     """The format of the dataset at ``path``, from its layout; ``"folder"`` when nothing else fits."""
     from dem_graph.datasets.folder import DATASET_YAML
@@ -51,6 +73,8 @@ def open_dataset(path: str | Path, format: str | None = None, options: DatasetOp
     """The :class:`Sequence` at ``path``; ``format`` None: told from the path (:func:`detect_format`)."""
     options = options or DatasetOptions()
     fmt = format or detect_format(path)
+    if fmt in USED_OPTIONS and (format is not None or Path(path).exists()):  # a missing path: the reader's error says so first
+        check_options_used(path, fmt, options, told=format is None)
     if fmt == "folder":
         from dem_graph.datasets.folder import FolderSequence
 
@@ -100,4 +124,4 @@ def open_sequence(sequence: Sequence | str | Path, recorded: dict | None = None)
     return sequence
 
 
-__all__ = ["FORMATS", "DatasetOptions", "detect_format", "open_dataset", "open_sequence", "reopen_dataset"]
+__all__ = ["FORMATS", "USED_OPTIONS", "DatasetOptions", "check_options_used", "detect_format", "open_dataset", "open_sequence", "reopen_dataset"]

@@ -257,7 +257,7 @@ class RosbagSequence(Sequence):
             self._odometry = self._read_odometry(reader, tree, body_frame) if odometry_topic is not None else []
             self._frame_t_s = np.array([t for t, _ in self._iter_images(reader, decode=False)])
         self._check_time_jumps()
-        warn_if_no_laser(self._where(scan_topic), len(self._scan_t_s))
+        warn_if_no_laser(self._where(scan_topic), self._scan_ranges, self._rig.laser)
         firsts = [a[0] for a in (self._frame_t_s, self._scan_t_s) if len(a)] + [o.t_prev_s for o in self._odometry[:1]]
         self._t_start_s = float(min(firsts)) if firsts else 0.0
 

@@ -42,6 +42,7 @@ class FusionConfig(StrictModel):
     resolution_m: float = Field(
         0.1,
         ge=0.01,
+        allow_inf_nan=False,
         description="DEM cell size, metres (at least 1 cm: the ranging noise is centimetres, and the live local map is made again at every frame)",
     )
     gate_sigma: float = Field(3.0, gt=0, description="Mahalanobis gate on a measurement against its cell, in sigmas")

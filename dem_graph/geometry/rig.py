@@ -287,9 +287,23 @@ def default_rig() -> SensorRig:
 Model = TypeVar("Model", bound=BaseModel)
 
 
+_UNION_TAGS: dict[str, set[str]] = {"beams": {m.model_fields["kind"].default for m in (PlanarBeams, DirectionBeams)}}
+"""The tags of each tagged union's members, by the union field's name."""
+
+
+def _field_path(loc: tuple) -> str:
+    """A pydantic location as the file's field path: without the member's tag pydantic puts after a
+    tagged union's field (``laser.beams.planar.count`` is ``laser.beams.count`` in the file)."""
+    parts: list[str] = []
+    for x in (str(x) for x in loc if x != ""):
+        if not (parts and x in _UNION_TAGS.get(parts[-1], ())):
+            parts.append(x)
+    return ".".join(parts)
+
+
 def _problem(error: dict, field_prefix: str) -> str:
     """One pydantic error as ``field problem``: a check of this module reads on after the field's name."""
-    loc = ".".join(str(x) for x in (field_prefix, *error["loc"]) if x != "") or "(top level)"
+    loc = _field_path((field_prefix, *error["loc"])) or "(top level)"
     if error["type"] == "value_error":
         return f"{loc} {error['ctx']['error']}"
     return f"{loc}: {error['msg']}"

@@ -25,11 +25,12 @@ import numpy as np
 
 from dem_graph.dem.layers import Dem
 from dem_graph.dem.views import heading_frame
-from dem_graph.errors import DatasetError, DemGraphError
+from dem_graph.errors import DatasetError, DemGraphError, one_line
 from dem_graph.geometry.grid import GridGeometry
 
 SAVED_LAYERS = ("elevation", "variance", "count", "age_s", "slope_deg", "step_height_m", "roughness_m")
 _POSE_VARS = ("x_world_m", "y_world_m", "z_world_m", "yaw_rad")
+NETCDF3_MAGIC = b"CDF"  # the first bytes of a netCDF 3 file (classic or 64-bit offset), the format written here
 
 
 class LiveMapWriter:
@@ -99,9 +100,16 @@ def _open(path: Path):
     if not path.is_file():
         raise DatasetError(path, "no saved live maps (the run saved none: live_map.save_every_n_frames 0, or an older run)")
     try:
+        with path.open("rb") as fh:
+            magic = fh.read(3)
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read ({exc.strerror or exc})") from None
+    if magic != NETCDF3_MAGIC:
+        raise DatasetError(path, "not a NetCDF live-maps file (it does not begin as a netCDF 3 file does: replaced or damaged)")
+    try:
         return xr.open_dataset(path, engine="scipy")
     except Exception as exc:  # noqa: BLE001 - any reader failure is a corrupt file to the user
-        raise DatasetError(path, f"not a readable live-maps file ({type(exc).__name__}: {exc})") from None
+        raise DatasetError(path, f"not a readable live-maps file ({type(exc).__name__}: {one_line(exc, 160)})") from None
 
 
 def read_live_maps(path: str | Path):

@@ -60,7 +60,8 @@ class LiveMapConfig(StrictModel):
     save_x_range_m: tuple[float, float] = Field((0.0, 8.0), description="the saved local maps' window ahead of the body origin, metres (from, to)")
     save_width_m: float = Field(6.0, gt=0, description="the saved local maps' width, metres")
     camera_silent_s: float = Field(1.0, gt=0, description="warn when no camera frame has come for this long (the map goes on with extrapolated poses)")
-    laser_silent_s: float = Field(2.0, gt=0, description="warn when no laser scan has come for this long (no laser return reaches the map; its cells age)")
+    laser_silent_s: float = Field(2.0, gt=0, description="warn when no laser scan with a return has come for this long (no laser return reaches the map; its cells age)")
+    odometry_silent_s: float = Field(0.5, gt=0, description="warn when a log with odometry has none for this long (the motion is predicted at constant velocity)")
 
 
 class RunConfig(SharedSettings):
@@ -85,6 +86,10 @@ class RunConfig(SharedSettings):
     live_map: LiveMapConfig = Field(default_factory=LiveMapConfig, description="the map built while the run goes, the one the guidance steers by")
 
 
+GRAPH_ESTIMATORS: tuple[str, ...] = ("isam2", "isam2-batch")
+"""The estimators that read the ``isam2`` section (the EKF baselines ignore it)."""
+
+
 @dataclass
 class RunOverrides:
     """Values set over the configuration file: what the command line's flags set. None (or False)
@@ -98,6 +103,12 @@ class RunOverrides:
     keyframe_every: int | None = None  # isam2.keyframe_every; for isam2-batch, its online pass's (batch_keyframe_every)
     graph_process: bool = False  # isam2.graph_process
     realtime: bool = False
+
+    def graph_only(self) -> list[str]:
+        """The command-line flags of the values set here that only the graph estimators
+        (:data:`GRAPH_ESTIMATORS`) read: what ``gm`` and ``ptpm`` would silently ignore."""
+        given = (("--lag", self.lag_s is not None), ("--keyframe-every", self.keyframe_every is not None), ("--graph-process", self.graph_process))
+        return [flag for flag, set_ in given if set_]
 
     def apply(self, config: RunConfig) -> RunConfig:
         """Set the given values on ``config`` (validated on assignment) and return it."""
@@ -163,6 +174,14 @@ def read_config_file(path: str | Path) -> dict:
     return _upgrade(data, path)
 
 
+def configured_estimator(config_file: str | Path | None, overrides: RunOverrides | None = None) -> str:
+    """The estimator a run will use, before its dataset is open: the override's, else the
+    configuration file's, else the default (no dataset's run settings choose one)."""
+    if overrides is not None and overrides.estimator is not None:
+        return overrides.estimator
+    return run_config(None, config_file).estimator
+
+
 def run_config(sequence: Sequence | None = None, config_file: str | Path | None = None, overrides: RunOverrides | None = None) -> RunConfig:
     """The run configuration: the defaults, then ``sequence``'s own run settings, then the YAML
     file ``config_file``, then ``overrides``. A wrong value anywhere is a :class:`ConfigError`."""
@@ -179,4 +198,4 @@ def run_config(sequence: Sequence | None = None, config_file: str | Path | None 
     return config
 
 
-__all__ = ["DemConfig", "ESTIMATORS", "EstimatorName", "LiveMapConfig", "RunConfig", "RunOverrides", "merge_settings", "read_config_file", "run_config"]
+__all__ = ["DemConfig", "ESTIMATORS", "GRAPH_ESTIMATORS", "configured_estimator", "EstimatorName", "LiveMapConfig", "RunConfig", "RunOverrides", "merge_settings", "read_config_file", "run_config"]

@@ -14,9 +14,11 @@ speed, and the local DEM over the focus area for that speed, in the vehicle's he
   scans whose pose moved are moved in the map. The estimator's map points go in as they leave it.
 - Bad input does not stop the map. A scan of the wrong length, or one with non-finite ranges, is
   skipped or thinned with a warning; an event older than the last of its kind is skipped with a
-  warning (``strict_order``: raised, as a dataset run does, whose log is then broken); a camera
-  silent for ``camera_silent_s`` or a laser silent for ``laser_silent_s`` is warned about, and the
-  map goes on (scans placed by extrapolation; cells age).
+  warning (``strict_order``: raised, as a dataset run does, whose log is then broken). Every event
+  checks every stream: a camera silent for ``camera_silent_s``, a laser without a single return for
+  ``laser_silent_s`` (scans of NaN count as silence) or odometry silent for ``odometry_silent_s`` is
+  warned about once, when it is found (also at the end of the log, for a stream that stopped for
+  good) and again when the stream is back; the map goes on (scans placed by extrapolation; cells age).
 
 Listeners (``pipeline.listeners.append(fn)``) are called with each update: the run's live Fig. 8
 measure, the saved live maps and the viewer are listeners. A listener that raises is logged and
@@ -144,8 +146,11 @@ class LivePipeline:
         self._images: deque[tuple[float, np.ndarray]] = deque(maxlen=4)  # the frames the estimator may still hold
         self._estimator_s = 0.0
         self._map_s = 0.0
-        self._laser_silence_warned = False  # once per silence
-        self.counters = {"events_out_of_order": 0, "scans_wrong_length": 0, "scans_nonfinite": 0, "camera_silences": 0, "laser_silences": 0}
+        # the latest time each stream gave something usable (a scan: one valid return at least), and
+        # whether its silence was warned about (once per silence)
+        self._heard = {"frame": None, "scan": None, "odometry": None}
+        self._silence_warned = {"frame": False, "scan": False, "odometry": False}
+        self.counters = {"events_out_of_order": 0, "scans_wrong_length": 0, "scans_nonfinite": 0, "camera_silences": 0, "laser_silences": 0, "odometry_silences": 0, "scans_without_return": 0}
 
     @classmethod
     def for_sequence(cls, sequence, config: RunConfig | None = None, strict_order: bool = False) -> LivePipeline:
@@ -176,13 +181,14 @@ class LivePipeline:
     def on_frame(self, event: CameraFrame) -> LiveUpdate | None:
         if not self._in_order("frame", event.t_s, f"camera frame {event.index}"):
             return None
-        self._check_silence(event.t_s)
+        self._heard_from("frame", event.t_s)
         self._images.append((event.t_s, event.image))
         return self._timed(self.estimator.on_frame, event)
 
     def on_odometry(self, event: Odometry) -> LiveUpdate | None:
         if not self._in_order("odometry", event.t_s, "odometry"):
             return None
+        self._heard_from("odometry", event.t_s)
         return self._timed(self.estimator.on_odometry, event)
 
     def on_scan(self, event: LaserScan) -> LiveUpdate | None:
@@ -198,7 +204,11 @@ class LivePipeline:
             self.counters["scans_nonfinite"] += 1
             if self.counters["scans_nonfinite"] == 1 or self.counters["scans_nonfinite"] % 100 == 0:
                 log.warning("laser scan %d at %.6f s has %d infinite ranges: those beams are left out (%d such scans so far)", event.index, event.t_s, n_inf, self.counters["scans_nonfinite"])
-        self._laser_silence_warned = False
+        if self.map.rig.laser.valid_ranges(ranges).any():
+            self._heard_from("scan", event.t_s)
+        else:  # a scan without a single return feeds nothing: to the map, the laser is silent
+            self.counters["scans_without_return"] += 1
+            self._check_silence(event.t_s)
         update = self._timed(self.estimator.on_scan, event)
         t0 = time.perf_counter()
         T, P = self._window.at(np.array([event.t_s]))
@@ -208,6 +218,9 @@ class LivePipeline:
 
     def finish(self) -> LiveUpdate | None:
         """The source has ended: the estimator processes anything it held back (the graph's last results come in)."""
+        ends = [t for t in self._last_t.values() if math.isfinite(t)]
+        if ends:
+            self._check_silence(max(ends))  # a stream that fell silent for good
         return self._timed(self.estimator.finish)
 
     def result(self):
@@ -239,17 +252,32 @@ class LivePipeline:
             return None
         return self._frame_done()
 
+    _SILENCES = {
+        "frame": ("camera_silent_s", "camera_silences", "no camera frame", "laser scans are placed with poses extrapolated by the motion model"),
+        "scan": ("laser_silent_s", "laser_silences", "no laser scan with a return", "no laser return goes into the map, its cells age"),
+        "odometry": ("odometry_silent_s", "odometry_silences", "no odometry", "the motion between frames is predicted at constant velocity"),
+    }
+
+    def _heard_from(self, stream: str, t_s: float) -> None:
+        """A usable event of ``stream`` at ``t_s``: a silence of it ends (said once), then every stream is checked."""
+        last = self._heard[stream]
+        if self._silence_warned[stream] and last is not None:
+            log.warning("%s again at %.3f s, after %.2f s", self._SILENCES[stream][2].replace("no ", "", 1), t_s, t_s - last)
+        self._silence_warned[stream] = False
+        self._heard[stream] = t_s
+        self._check_silence(t_s)
+
     def _check_silence(self, t_s: float) -> None:
+        """Warn once about each stream that was heard from before and has been silent longer than its
+        setting at ``t_s`` (a stream never heard from is not expected: a log without odometry)."""
         c = self.config.live_map
-        last_frame = self._last_frame_t()
-        if last_frame is not None and t_s - last_frame > c.camera_silent_s:
-            self.counters["camera_silences"] += 1
-            log.warning("no camera frame for %.2f s (until %.3f s): laser scans were placed with extrapolated poses", t_s - last_frame, t_s)
-        last_scan = self._last_t["scan"]
-        if math.isfinite(last_scan) and t_s - last_scan > c.laser_silent_s and not self._laser_silence_warned:
-            self.counters["laser_silences"] += 1
-            self._laser_silence_warned = True
-            log.warning("no laser scan for %.2f s (since %.3f s): no laser return goes into the map, its cells age", t_s - last_scan, last_scan)
+        for stream, (setting, counter, what, consequence) in self._SILENCES.items():
+            last = self._heard[stream]
+            if last is None or self._silence_warned[stream] or t_s - last <= getattr(c, setting):
+                continue
+            self._silence_warned[stream] = True
+            self.counters[counter] += 1
+            log.warning("%s for %.2f s (since %.3f s): %s", what, t_s - last, last, consequence)
 
     def _last_frame_t(self) -> float | None:
         return self._frame_t[-1] if self._frame_t else None

@@ -10,6 +10,7 @@ import numpy as np
 
 from dem_graph.datasets.base import Sequence
 from dem_graph.estimators.base import EstimatorResult
+from dem_graph.evaluation.dem_metrics import HeightErrors
 from dem_graph.evaluation.results import MetricsModel
 from dem_graph.evaluation.timing import PhaseTiming, frame_timing_summary
 from dem_graph.evaluation.trajectory_metrics import (
@@ -83,6 +84,14 @@ def compute_metrics(sequence: Sequence, res: EstimatorResult, error: str | None 
     return metrics
 
 
+def laser_cells_error_text(e: HeightErrors) -> str:
+    """The DEM's height RMSE over the laser-swept cells as the summaries print it, or that there is
+    no such cell (no laser return fell where the truth is known): never "nan cm"."""
+    if e.cells == 0 or not np.isfinite(e.rmse_m):
+        return "no laser-swept cell (no height RMSE)"
+    return f"height RMSE {100 * e.rmse_m:.1f} cm over the laser-swept cells"
+
+
 def summary_lines(m: RunMetrics) -> list[str]:
     """A run's metrics in a few lines, as ``dem-graph run`` prints them."""
     lines = [f"{m.estimator}: {m.frames or 0} frames in {m.elapsed_s or 0.0:.1f} s"]
@@ -102,7 +111,7 @@ def summary_lines(m: RunMetrics) -> list[str]:
         line = f"DEM: {d.covered_cells} cells of {d.resolution_m:g} m from {d.measurements} measurements, rebuilt in {d.rebuild_s:.2f} s"
         if d.height_error_laser_cells is not None and d.corridor is not None:
             e, c = d.height_error_laser_cells, d.corridor
-            line += f"; height RMSE {100 * e.rmse_m:.1f} cm over the laser-swept cells, corridor {100 * c.coverage:.0f} % covered"
+            line += f"; {laser_cells_error_text(e)}, corridor {100 * c.coverage:.0f} % covered"
         lines.append(line)
         lw = d.local_window
         if lw is not None and lw.frames_with_data:
@@ -122,4 +131,4 @@ def summary_lines(m: RunMetrics) -> list[str]:
     return lines
 
 
-__all__ = ["PointsPerFrame", "RunMetrics", "compute_metrics", "summary_lines"]
+__all__ = ["PointsPerFrame", "RunMetrics", "compute_metrics", "laser_cells_error_text", "summary_lines"]

@@ -320,13 +320,22 @@ def run_folder_dem(run_dir: str | Path, sequence: Sequence, at_s: float | None =
     return focus_local_dem(returns, poses, at_s, sequence.rig, config.frontend.focus, config.dem)
 
 
+def require_run_folder(run_dir: str | Path) -> Path:
+    """``run_dir`` as a path, once it is seen to be a run folder (it holds ``poses.npz``); a
+    :class:`DatasetError` naming it otherwise (a dataset folder given for a run, say)."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise DatasetError(run_dir, "run folder not found" if not run_dir.exists() else "not a folder")
+    if not (run_dir / POSES_NPZ).exists():
+        raise DatasetError(run_dir, f"not a run folder written by `dem-graph run` (no {POSES_NPZ})")
+    return run_dir
+
+
 def remake_dem(run_dir: str | Path, dataset: str | Path | None = None, at_s: float | None = None, resolution_m: float | None = None) -> RunDem:
     """What ``dem-graph dem RUN`` makes: the run folder's DEM again (see :func:`run_folder_dem`), from
     the dataset it names (or ``dataset``) opened as the run opened it, with its configuration (the
     cell size ``resolution_m`` if given)."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise DatasetError(run_dir, "run folder not found")
+    run_dir = require_run_folder(run_dir)
     config = run_folder_config(run_dir)
     recorded = read_run_metrics(run_dir)
     if dataset is None:
@@ -344,9 +353,7 @@ def remake_dem(run_dir: str | Path, dataset: str | Path | None = None, at_s: flo
 
 def live_map_of_run(run_dir: str | Path, t_s: float) -> Dem:
     """The live local map a run saved last at or before ``t_s`` (``RUN/live_maps.nc``)."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise DatasetError(run_dir, "run folder not found")
+    run_dir = require_run_folder(run_dir)
     path = run_dir / LIVE_MAPS_NC
     if not path.is_file():
         raise DatasetError(path, "not found: the run saved no live map (an older run, or live_map.save_every_n_frames: 0); --hindsight makes one from its poses")
@@ -411,6 +418,7 @@ __all__ = [
     "prepare_run_folder",
     "read_run_metrics",
     "remake_dem",
+    "require_run_folder",
     "run_folder_config",
     "run_folder_dem",
     "save_run_poses",
