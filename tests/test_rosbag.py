@@ -20,8 +20,10 @@ N_FRAMES, N_SCANS, N_ODOM = 4, 5, 6
 
 
 def _rig():
+    """The default rig with the bags' laser beams and a camera of the bags' 32x24 images."""
     rig = default_rig()
-    return rig.model_copy(update={"laser": rig.laser.model_copy(update={"beams": BEAMS})})
+    camera = rig.camera.model_copy(update={"width_px": 32, "height_px": 24, "fx_px": 22.4, "fy_px": 22.4, "cx_px": 15.5, "cy_px": 11.5})
+    return rig.model_copy(update={"camera": camera, "laser": rig.laser.model_copy(update={"beams": BEAMS})})
 
 
 def _truth():
@@ -150,7 +152,7 @@ def test_compressed_image_and_mono(tmp_path):
 
     store = get_typestore(Stores.ROS2_HUMBLE)
     T = store.types
-    img = np.random.default_rng(1).integers(0, 256, (16, 20), dtype=np.uint8)
+    img = np.random.default_rng(1).integers(0, 256, (24, 32), dtype=np.uint8)
     ok, png = cv2.imencode(".png", img)
     assert ok
     header = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=5, nanosec=0), frame_id="cam")
@@ -197,3 +199,10 @@ def test_transform_tree_chains_both_ways():
     np.testing.assert_allclose(tree.lookup("base", "laser"), A @ B, atol=1e-12)
     np.testing.assert_allclose(tree.lookup("laser", "base"), np.linalg.inv(A @ B), atol=1e-12)
     assert tree.lookup("base", "nowhere") is None
+
+
+def test_an_image_of_another_size_than_the_rig_is_refused_naming_the_message(tmp_path):
+    bag = write_bag(tmp_path / "log.bag", True)
+    seq = RosbagSequence(bag, default_rig().model_copy(update={"laser": _rig().laser}), "/cam/image", "/scan")
+    with pytest.raises(DatasetError, match=r"topic /cam/image message 0: image is 32x24 px but the rig's camera is 800x600 px"):
+        list(seq.events())

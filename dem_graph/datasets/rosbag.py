@@ -40,6 +40,7 @@ from dem_graph.datasets.base import LASER_STREAM, ODOMETRY_STREAM, Sequence, fir
 from dem_graph.datasets.checks import (
     InputChecks,
     TextureWatch,
+    check_image_size,
     check_time_jumps,
     covariance_problems,
     plausible_increments,
@@ -395,6 +396,7 @@ class RosbagSequence(Sequence):
                     yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges[i].copy(), i)
                 else:
                     t, image = next(images)
+                    check_image_size(f"{self._where(self._image_topic)} message {i}", image, self.rig.camera)
                     yield texture.frame(CameraFrame(t, image, i))
 
     def __repr__(self) -> str:
