@@ -21,6 +21,8 @@ from scipy.interpolate import CubicSpline
 from dem_graph.geometry.lie import so3_exp, so3_log
 from dem_graph.geometry.se3 import make_pose
 
+GAP_FACTOR = 4.0  # an interval this many times the median spacing of the history is a gap (PoseHistory.at)
+
 
 class PoseHistory:
     def __init__(self, window: int = 6):
@@ -50,13 +52,25 @@ class PoseHistory:
     def __len__(self) -> int:
         return len(self._t)
 
+    def _long_interval(self, t_s: float) -> int | None:
+        """The index of the interval holding ``t_s`` when it is more than ``GAP_FACTOR`` times the
+        history's median spacing (a camera gap): a cubic through such uneven knots swings far off the
+        path inside it, so it is interpolated linearly (rotation slerp, linear translation)."""
+        t = self._t
+        if len(t) < 3 or not t[0] <= t_s <= t[-1]:
+            return None
+        i = min(int(np.searchsorted(t, t_s, side="right")) - 1, len(t) - 2)
+        spacing = np.diff(np.asarray(t, dtype=float))
+        return i if spacing[i] > GAP_FACTOR * float(np.median(spacing)) else None
+
     def at(self, t_s: float) -> np.ndarray:
         """``T_world_body`` at ``t_s``: spline inside the history's span, linear just beyond it."""
         t = self._t
         if len(t) == 1:
             return self._T[0].copy()
-        if len(t) == 2 or t_s < t[0] or t_s > t[-1]:
-            i = 0 if t_s < t[0] else len(t) - 2
+        i_gap = self._long_interval(t_s)
+        if len(t) == 2 or t_s < t[0] or t_s > t[-1] or i_gap is not None:
+            i = i_gap if i_gap is not None else 0 if t_s < t[0] else len(t) - 2
             T0, T1 = self._T[i], self._T[i + 1]
             a = (t_s - t[i]) / (t[i + 1] - t[i])
             R = T0[:3, :3] @ so3_exp(a * so3_log(T0[:3, :3].T @ T1[:3, :3]))
