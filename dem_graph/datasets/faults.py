@@ -20,15 +20,18 @@ from __future__ import annotations
 
 import logging
 import math
+import shutil
 from collections.abc import Iterator
 from collections.abc import Sequence as Seq
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
 from dem_graph.datasets.base import GroundTruth, Sequence
 from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
-from dem_graph.errors import DemGraphError
+from dem_graph.datasets.folder import write_folder_dataset
+from dem_graph.errors import DatasetError, DemGraphError
 
 log = logging.getLogger(__name__)
 
@@ -190,12 +193,6 @@ def write_faulty_dataset(base: Sequence, faults: Faults, out_dir, overwrite: boo
     written when ``base`` tells its frames' times, as a dataset folder does); an interval that takes
     nothing out is warned of.
     """
-    import shutil
-    from pathlib import Path
-
-    from dem_graph.datasets.folder import write_folder_dataset
-    from dem_graph.errors import DatasetError
-
     out = Path(out_dir)
     source = getattr(base, "path", None)
     if source is not None and out.resolve() == Path(source).resolve():

@@ -252,17 +252,17 @@ class LivePipeline:
             return None
         return self._frame_done()
 
-    _SILENCES = {
-        "frame": ("camera_silent_s", "camera_silences", "no camera frame", "laser scans are placed with poses extrapolated by the motion model"),
-        "scan": ("laser_silent_s", "laser_silences", "no laser scan with a return", "no laser return goes into the map, its cells age"),
-        "odometry": ("odometry_silent_s", "odometry_silences", "no odometry", "the motion between frames is predicted at constant velocity"),
+    _SILENCES = {  # stream: (its setting, its counter, what it gives, what the map does without it)
+        "frame": ("camera_silent_s", "camera_silences", "camera frame", "laser scans are placed with poses extrapolated by the motion model"),
+        "scan": ("laser_silent_s", "laser_silences", "laser scan with a return", "no laser return goes into the map, its cells age"),
+        "odometry": ("odometry_silent_s", "odometry_silences", "odometry", "the motion between frames is predicted at constant velocity"),
     }
 
     def _heard_from(self, stream: str, t_s: float) -> None:
         """A usable event of ``stream`` at ``t_s``: a silence of it ends (said once), then every stream is checked."""
         last = self._heard[stream]
         if self._silence_warned[stream] and last is not None:
-            log.warning("%s again at %.3f s, after %.2f s", self._SILENCES[stream][2].replace("no ", "", 1), t_s, t_s - last)
+            log.warning("%s again at %.3f s, after %.2f s", self._SILENCES[stream][2], t_s, t_s - last)
         self._silence_warned[stream] = False
         self._heard[stream] = t_s
         self._check_silence(t_s)
@@ -277,10 +277,7 @@ class LivePipeline:
                 continue
             self._silence_warned[stream] = True
             self.counters[counter] += 1
-            log.warning("%s for %.2f s (since %.3f s): %s", what, t_s - last, last, consequence)
-
-    def _last_frame_t(self) -> float | None:
-        return self._frame_t[-1] if self._frame_t else None
+            log.warning("no %s for %.2f s (since %.3f s): %s", what, t_s - last, last, consequence)
 
     def _frame_done(self) -> LiveUpdate:
         est = self.estimator
