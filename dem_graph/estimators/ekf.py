@@ -72,7 +72,9 @@ class EkfSlam(FrameDrivenEstimator):
         self._pending_frame = None
         timing = {}
         t0 = time.perf_counter()
-        self._predict(event.t_s)
+        if self.frontend.begin_frame(event.t_s):
+            self._drop_points()  # after a camera gap: the points it made stale
+        self._predict(event)
         t1 = time.perf_counter()
         timing["prediction"] = t1 - t0
         image = event.image
@@ -84,6 +86,7 @@ class EkfSlam(FrameDrivenEstimator):
         if not event.textureless:
             live_uv = self._drop_points()
             self._add_points(image, event.t_s, live_uv)
+        self.frontend.end_frame(event.t_s, image, event.textureless)
         timing["map"] = time.perf_counter() - t2
         timing["total"] = time.perf_counter() - t0
         record = FrameRecord(event.t_s, self.state.T_world_body.copy(), self.state.pose_covariance(), self.state.n_points, n_tracked, timing)
@@ -91,11 +94,13 @@ class EkfSlam(FrameDrivenEstimator):
         return record
 
     # --- prediction --------------------------------------------------------------------------
-    def _predict(self, t_s: float) -> None:
-        """Odometry moves the filter's pose (and sets its velocity); without it, its velocity does."""
-        dt, increment = self._motion.advance(t_s)
+    def _predict(self, event: CameraFrame) -> None:
+        """Odometry moves the filter's pose (and sets its velocity), refined across a camera gap by
+        the images on either side (:class:`~dem_graph.frontend.gap_bridge.GapBridge`); without
+        odometry, its velocity does."""
+        dt, increment = self._motion.advance(event.t_s)
         if increment is not None:
-            U, Q = increment
+            U, Q = self.frontend.gap_bridge.refine(event.t_s, event.image, event.textureless, *increment)
             self.state.predict_increment(U, Q, dt)
         elif dt > 0:
             self.state.predict_constant_velocity(dt, self._motion.sigma_acc)

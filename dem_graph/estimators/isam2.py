@@ -130,7 +130,9 @@ class Isam2Slam(FrameDrivenEstimator):
         filt, client, c = self._filter, self._client, self.config
         timing = {}
         t0 = time.perf_counter()
-        dt, U, Q = self._motion_since_last_frame(event.t_s)
+        if self.frontend.begin_frame(event.t_s):
+            self._drop_points()  # after a camera gap: the points it made stale
+        dt, U, Q = self._motion_since_last_frame(event)
         A = adjoint(invert(U))  # carries every covariance over the frame's motion
         T_pred = filt.predict(U, Q, A)
         client.carry(U, Q, A)
@@ -155,6 +157,7 @@ class Isam2Slam(FrameDrivenEstimator):
             graph_s = time.perf_counter() - tg
         tm = time.perf_counter()
         filt.end_frame(event.t_s)
+        self.frontend.end_frame(event.t_s, event.image, event.textureless)
         live_uv = None if event.textureless else self._drop_points()  # nothing is lost in a frame that could not show it
         map_s = time.perf_counter() - tm
         if is_keyframe:
@@ -178,11 +181,13 @@ class Isam2Slam(FrameDrivenEstimator):
         self._frames.append(record)
         return record
 
-    def _motion_since_last_frame(self, t_s: float) -> tuple[float, np.ndarray, np.ndarray]:
+    def _motion_since_last_frame(self, event: CameraFrame) -> tuple[float, np.ndarray, np.ndarray]:
         """The time since the last frame, seconds, and the motion over it with its covariance:
-        the odometry's, or (without) constant velocity from the last two frames' poses."""
-        dt, increment = self._motion.advance(t_s)
+        the odometry's, or (without) constant velocity from the last two frames' poses; across a
+        camera gap, refined by the images on either side (:class:`~dem_graph.frontend.gap_bridge.GapBridge`)."""
+        dt, increment = self._motion.advance(event.t_s)
         U, Q = increment if increment is not None else constant_velocity_increment(self._filter.v_body, dt, self._motion.sigma_acc)
+        U, Q = self.frontend.gap_bridge.refine(event.t_s, event.image, event.textureless, U, Q)
         return dt, U, Q
 
     def _split_refreshed(self, idx: np.ndarray) -> np.ndarray:
