@@ -140,3 +140,45 @@ def test_a_blackout_of_a_second_costs_each_estimator_at_most_30_percent_of_its_e
     # every point live before the gap was dropped as lost before the frame after it was searched
     frames = gap.estimator.frames
     assert frames[20].n_tracked == 0 and ev["dropped_lost"] >= frames[19].n_live
+
+
+@pytest.mark.parametrize("estimator", ["ptpm", "isam2"])
+def test_a_second_of_black_frames_is_bridged_like_a_blackout(smoke_log, estimator):
+    """Frames 20-44 arrive black (the reader marks them without texture): their poses are the
+    odometry's, 2.3 degrees off in roll by the end of the stretch here (nothing better is known
+    online). When the texture is back the stretch is bridged as a gap: the first frame with texture
+    is back within 0.25 degrees and 1.5 cm of the truth (measured: ptpm 0.20 and isam2 0.17 degrees, 12 and
+    11 mm), the stale
+    points are dropped and the scans taken in the dark skipped. For PTPM the frames outside the
+    stretch are then within 30 % of the run without it (measured 1.14; before, the whole run's ATE
+    was 5.3 times the clean one's)."""
+    import dataclasses
+
+    from dem_graph.geometry.lie import so3_log
+
+    dark = range(20, 45)
+    events = [
+        dataclasses.replace(e, image=np.zeros_like(e.image), textureless=True) if isinstance(e, CameraFrame) and e.index in dark else e
+        for e in smoke_log.events()
+    ]
+    run = run_estimator(smoke_log.replace_events(events), RunConfig(estimator=estimator), with_dem=False)
+    truth = smoke_log.ground_truth.trajectory
+    ev = run.metrics.events
+    assert ev["gap_bridged"] == 1 and ev["frames_missed"] == 25 and ev["scan_in_camera_gap"] >= 12
+    frames = run.estimator.frames
+
+    def errors(f):
+        T = truth.at(np.array([f.t_s]))[0]
+        return np.degrees(np.linalg.norm(so3_log(T[:3, :3].T @ f.T_world_body[:3, :3]))), np.linalg.norm(f.T_world_body[:3, 3] - T[:3, 3])
+
+    assert errors(frames[dark[-1]])[0] > 1.0  # the odometry's error the bridge has to remove
+    rotation_deg, position_m = errors(frames[dark[-1] + 1])
+    assert rotation_deg < 0.25 and position_m < 0.015
+    if estimator == "ptpm":
+        clean = run_estimator(smoke_log, RunConfig(estimator=estimator), with_dem=False)
+
+        def rms_outside_the_dark(frames):
+            e = [errors(f)[1] for k, f in enumerate(frames) if k not in dark]
+            return float(np.sqrt(np.mean(np.square(e))))
+
+        assert rms_outside_the_dark(frames) <= 1.3 * rms_outside_the_dark(clean.estimator.frames)

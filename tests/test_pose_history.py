@@ -76,6 +76,3 @@ def test_across_a_camera_gap_the_poses_are_interpolated_linearly_not_swung_by_th
     # the knots before the gap keep their spline: a scan between two 25 Hz poses is placed as before
     dr, dp = _errors(history.at(0.14), 0.14)
     assert dp < 1e-4 and dr < 1e-3
-    # and the history tells a time in the gap (where the pose is only this linear guess) from the rest
-    assert history.in_gap(0.9) and history.in_gap(t0 + 0.01)
-    assert not history.in_gap(0.14) and not history.in_gap(t1 + 0.01) and not history.in_gap(-1.0)

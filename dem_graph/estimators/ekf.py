@@ -72,7 +72,7 @@ class EkfSlam(FrameDrivenEstimator):
         self._pending_frame = None
         timing = {}
         t0 = time.perf_counter()
-        if self.frontend.begin_frame(event.t_s):
+        if self.frontend.begin_frame(event.t_s, event.textureless):
             self._drop_points()  # after a camera gap: the points it made stale
         self._predict(event)
         t1 = time.perf_counter()

@@ -130,7 +130,7 @@ class Isam2Slam(FrameDrivenEstimator):
         filt, client, c = self._filter, self._client, self.config
         timing = {}
         t0 = time.perf_counter()
-        if self.frontend.begin_frame(event.t_s):
+        if self.frontend.begin_frame(event.t_s, event.textureless):
             self._drop_points()  # after a camera gap: the points it made stale
         dt, U, Q = self._motion_since_last_frame(event)
         A = adjoint(invert(U))  # carries every covariance over the frame's motion

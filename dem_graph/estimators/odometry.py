@@ -17,8 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from dem_graph.datasets.events import Odometry
-from dem_graph.geometry.lie import adjoint, scale_increment
-from dem_graph.geometry.se3 import invert
+from dem_graph.geometry.lie import compose_increments, scale_increment
 
 _GAP_S = 1e-9  # an uncovered time shorter than this is rounding, not a gap
 
@@ -50,7 +49,7 @@ class OdometryIntegrator:
                     U, Q = self._at_last_rate(U, Q, lo - covered)
                 f = (hi - lo) / span
                 part = scale_increment(e.T_prev_curr, f) if f < 1.0 - 1e-9 else e.T_prev_curr
-                U, Q = _compose(U, Q, part, e.covariance * f)
+                U, Q = compose_increments(U, Q, part, e.covariance * f)
                 covered = hi
                 self._last = (e.T_prev_curr, e.covariance, span)
             if e.t_s > b:
@@ -70,10 +69,5 @@ class OdometryIntegrator:
             return U, Q
         T_rate, cov_rate, span = self._last
         f = duration_s / span
-        return _compose(U, Q, scale_increment(T_rate, f), cov_rate * max(f, 1.0))
+        return compose_increments(U, Q, scale_increment(T_rate, f), cov_rate * max(f, 1.0))
 
-
-def _compose(U: np.ndarray, Q: np.ndarray, part: np.ndarray, Q_part: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The motion ``U`` then ``part``, and its covariance (right perturbation): ``Q`` carried through ``part`` plus ``Q_part``."""
-    A = adjoint(invert(part))
-    return U @ part, A @ Q @ A.T + Q_part

@@ -68,6 +68,7 @@ class OnlineFilter:
         self._gate = frontend.tracker.gate_chi2
         self.T = T_world_body
         self.P_loc = P0.copy()  # pose covariance relative to the map (search regions)
+        self._P0 = P0.copy()
         self.live = LivePoints()
         self.history = PoseHistory(window=config.keyframe_spacing + 5)
         self.history.append(t_s, self.T)
@@ -79,9 +80,14 @@ class OnlineFilter:
     # --- one frame ---------------------------------------------------------------------------
     def predict(self, U: np.ndarray, Q: np.ndarray, A: np.ndarray | None = None) -> np.ndarray:
         """Carry the pose covariance over the motion ``U`` since the last frame (covariance ``Q``;
-        ``A``: ``adjoint(invert(U))`` when the caller has it); returns the predicted pose."""
+        ``A``: ``adjoint(invert(U))`` when the caller has it); returns the predicted pose.
+
+        Without a live point (at the start, or after a camera gap dropped them all) there is no map
+        to be uncertain against: the points this frame seeds are placed from this pose, so the
+        covariance restarts at the initial one. (Carried on instead, a gap's growth would size every
+        later search region as if against the lost map, and keep it too large to search.)"""
         A = adjoint(invert(U)) if A is None else A
-        self.P_loc = A @ self.P_loc @ A.T + Q
+        self.P_loc = A @ self.P_loc @ A.T + Q if len(self.live) else self._P0.copy()
         return self.T @ U
 
     def track(self, image, t_s: float, T_pred: np.ndarray) -> FrameMatches:

@@ -141,6 +141,7 @@ class FrontEnd:
     record_view: bool = False  # keep each frame's searches in last_view (a viewer asks for it)
     last_view: TrackedView | None = None  # the latest frame's searches, when recorded
     _next_id: int = 0
+    _gap_s: tuple[float, float] | None = None  # the camera gap the current frame ends, (start, end) seconds
 
     def __post_init__(self):
         self.tracker = PatchTracker(self.config.tracker)
@@ -150,13 +151,15 @@ class FrontEnd:
         self.gap_bridge = GapBridge(self.config.gap_bridge, self.camera, self.T_body_cam, self.rig.camera.rate_hz, self.counters)
 
     # --- frames ------------------------------------------------------------------------------
-    def begin_frame(self, t_s: float) -> int:
-        """A frame at ``t_s`` begins; returns the camera frames a gap before it swallowed (0: none).
-        Those count as misses of every live point, so after a gap of ``max_misses`` frames or more
-        every point is lost and the estimator drops it before searching (:meth:`drop_points`): its
-        patch and its prediction are staler than after as many failed searches, and on the `smoke`
-        log the few such points matched after a 1 s gap pulled the pose 3 cm off."""
-        missed = self.gap_bridge.frames_missed(t_s)
+    def begin_frame(self, t_s: float, textureless: bool) -> int:
+        """A frame at ``t_s`` begins; returns the camera frames a gap before it swallowed (0: none;
+        frames without texture count as swallowed, once the texture is back). Those count as misses
+        of every live point, so after a gap of ``max_misses`` frames or more every point is lost and
+        the estimator drops it before searching (:meth:`drop_points`): its patch and its prediction
+        are staler than after as many failed searches, and on the `smoke` log the few such points
+        matched after a 1 s gap pulled the pose 3 cm off."""
+        missed = 0 if textureless else self.gap_bridge.frames_missed(t_s)
+        self._gap_s = (self.gap_bridge.last_t_s, t_s) if missed else None
         if missed:
             self.counters["frames_missed"] += missed
             for track in self.tracks.values():
@@ -396,15 +399,16 @@ class FrontEnd:
         then camera points at the empty focus cells; away from the live points' pixels ``occupied_uv``.
         Positions are in the body frame of ``T_world_body``.
 
-        A scan taken during a camera gap seeds nothing: the pose at its time is only interpolated
-        linearly across the gap, centimetres off the path (a degree of pitch over the gap is 5 cm at
-        3 m), while a laser point claims millimetres; tracked, such points would pull the pose after
-        the gap off by their error (``scan_in_camera_gap`` counts them)."""
+        A scan taken during the camera gap this frame ends (:meth:`begin_frame`) seeds nothing: the
+        pose at its time is only a guess (interpolated across frames that did not come, or predicted
+        at frames without texture), centimetres off the path (a degree of pitch is 5 cm at 3 m), while
+        a laser point claims millimetres; tracked, such points would pull the pose after the gap off
+        by their error (``scan_in_camera_gap`` counts them)."""
         focus = self.focus_area(speed_mps)
         T_body_world = invert(T_world_body)
         new: list[NewPoint] = []
         for scan in scans:
-            if history.in_gap(scan.t_s):
+            if self._gap_s is not None and self._gap_s[0] < scan.t_s <= self._gap_s[1]:
                 self.counters["scan_in_camera_gap"] += 1
                 continue
             T_body_laser_now = T_body_world @ history.at(scan.t_s) @ self.rig.T_body_laser

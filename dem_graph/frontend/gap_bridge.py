@@ -32,7 +32,7 @@ from scipy.optimize import least_squares
 
 from dem_graph.config_types import StrictModel
 from dem_graph.geometry.camera import PinholeCamera
-from dem_graph.geometry.lie import retract, skew
+from dem_graph.geometry.lie import compose_increments, retract, skew
 from dem_graph.geometry.se3 import invert
 
 log = logging.getLogger(__name__)
@@ -68,42 +68,68 @@ class BridgeReport:
 
 @dataclass
 class GapBridge:
+    """Feed it every frame: :meth:`refine` with the frame's increment when it begins, :meth:`remember`
+    when it is done. A gap is time without a frame with texture: frames that did not come, and frames
+    that came without texture (black, or frozen), whose increments it composes meanwhile."""
+
     config: GapBridgeConfig
     camera: PinholeCamera
     T_body_cam: np.ndarray
     frame_rate_hz: float
     counters: Counter = field(default_factory=Counter)
     last_report: BridgeReport | None = None
-    _last_image: np.ndarray | None = None  # the previous frame's grey image, None when it had no texture
-    _last_t_s: float | None = None
+    _last_image: np.ndarray | None = None  # the last frame with texture, grey
+    _last_t_s: float | None = None  # its time
+    # the motion since it over the frames without texture that followed it, and its covariance
+    _U_dark: np.ndarray = field(default_factory=lambda: np.eye(4))
+    _Q_dark: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
 
     def remember(self, t_s: float, image: np.ndarray, textureless: bool) -> None:
-        """The frame just processed: the next frame's bridge starts from it (if it had texture)."""
+        """The frame just processed: the next gap starts from it if it had texture."""
+        if textureless and self._last_t_s is not None:
+            return
         self._last_t_s = float(t_s)
         self._last_image = None if textureless else _grey(image)
+        self._U_dark, self._Q_dark = np.eye(4), np.zeros((6, 6))
+
+    @property
+    def last_t_s(self) -> float | None:
+        """The time of the last frame with texture (None before the first)."""
+        return self._last_t_s
 
     def frames_missed(self, t_s: float) -> int:
-        """The camera periods a gap before a frame at ``t_s`` swallowed: 0 unless the frame comes more
-        than ``after_frames`` periods after the previous one."""
+        """The camera periods a gap before a frame at ``t_s`` swallowed since the last frame with
+        texture: 0 unless the frame comes more than ``after_frames`` periods after it."""
         if self._last_t_s is None:
             return 0
         periods = (t_s - self._last_t_s) * self.frame_rate_hz
         return max(int(round(periods)) - 1, 0) if periods > self.config.after_frames else 0
 
     def after_gap(self, t_s: float) -> bool:
-        """Whether a frame at ``t_s`` comes after a gap the bridge can span (the frame before had texture)."""
+        """Whether a frame at ``t_s`` comes after a gap the bridge can span (it starts at a frame with texture)."""
         return self.config.enabled and self._last_image is not None and self.frames_missed(t_s) > 0
 
     def refine(self, t_s: float, image: np.ndarray, textureless: bool, U: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The increment ``T_prev_curr`` ``U`` (covariance ``Q``, right perturbation [rot, trans])
-        since the previous frame, refined by the two images when a gap lies between them (and the
-        frame at ``t_s`` has texture); else as given."""
+        since the previous frame, refined by the images on either side when a gap ends at this frame
+        (one with texture); else as given.
+
+        After frames without texture, the motion refined is the whole gap's (their increments and
+        this one) and its correction ``Exp(xi)`` is applied to this frame's increment; the covariance
+        returned is then this frame's own, since the estimator has already taken the dark frames'
+        (conservative: it keeps their growth)."""
         self.last_report = None
-        if textureless or not self.after_gap(t_s):
+        if textureless:
+            if self._last_image is not None:
+                self._U_dark, self._Q_dark = compose_increments(self._U_dark, self._Q_dark, U, Q)
+            return U, Q
+        if not self.after_gap(t_s):
             return U, Q
         gap_s = t_s - float(self._last_t_s)
+        dark = bool(np.any(self._Q_dark))
+        U_gap, Q_gap = compose_increments(self._U_dark, self._Q_dark, U, Q) if dark else (U, Q)
         try:
-            refined = self._refine(_grey(image), U, Q)
+            refined = self._refine(_grey(image), U_gap, Q_gap)
         except (cv2.error, np.linalg.LinAlgError, ValueError) as exc:  # a degenerate image pair: the increment stands
             refined = f"the refinement failed ({exc})"
         if isinstance(refined, str):
@@ -117,6 +143,8 @@ class GapBridge:
             "camera gap of %.2f s before the frame at %.3f s bridged by %d of %d matches (%.2f px): rotation corrected by %.2f deg",
             gap_s, t_s, report.n_inliers, report.n_tracked, report.sigma_px, math.degrees(float(np.linalg.norm(report.correction[:3]))),
         )
+        if dark:
+            return retract(U, report.correction), Q
         return U_new, Q_new
 
     # --- the two-view refinement -------------------------------------------------------------

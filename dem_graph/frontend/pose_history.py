@@ -63,11 +63,6 @@ class PoseHistory:
         spacing = np.diff(np.asarray(t, dtype=float))
         return i if spacing[i] > GAP_FACTOR * float(np.median(spacing)) else None
 
-    def in_gap(self, t_s: float) -> bool:
-        """Whether ``t_s`` falls in an interval of the history more than ``GAP_FACTOR`` times its
-        median spacing (a camera gap), where the pose is only a linear guess."""
-        return self._long_interval(t_s) is not None
-
     def at(self, t_s: float) -> np.ndarray:
         """``T_world_body`` at ``t_s``: spline inside the history's span, linear just beyond it."""
         t = self._t

@@ -12,6 +12,8 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from dem_graph.geometry.se3 import invert
+
 
 def skew(w: np.ndarray) -> np.ndarray:
     """``skew(a) @ b == cross(a, b)``; (...,3) -> (...,3,3)."""
@@ -114,3 +116,10 @@ def scale_increment(T: np.ndarray, fraction: float) -> np.ndarray:
     out[:3, :3] = so3_exp(fraction * so3_log(T[:3, :3]))
     out[:3, 3] = fraction * T[:3, 3]
     return out
+
+
+def compose_increments(U: np.ndarray, Q: np.ndarray, part: np.ndarray, Q_part: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The motion ``U`` then ``part``, and its 6x6 covariance (right perturbation, [rot, trans]):
+    ``Q`` carried through ``part`` plus ``Q_part``."""
+    A = adjoint(invert(part))
+    return U @ part, A @ Q @ A.T + Q_part
