@@ -147,9 +147,9 @@ def test_a_second_of_black_frames_is_bridged_like_a_blackout(smoke_log, estimato
     """Frames 20-44 arrive black (the reader marks them without texture): their poses are the
     odometry's, 2.3 degrees off in roll by the end of the stretch here (nothing better is known
     online). When the texture is back the stretch is bridged as a gap: the first frame with texture
-    is back within 0.25 degrees and 1.5 cm of the truth (measured: ptpm 0.20 and isam2 0.17 degrees, 12 and
-    11 mm), the stale
-    points are dropped and the scans taken in the dark skipped. For PTPM the frames outside the
+    is back within 0.25 degrees and 1.5 cm of the truth (measured: ptpm 0.20 and isam2 0.17
+    degrees, 12 and 11 mm), the stale points are dropped and the scans taken in the dark skipped.
+    For PTPM the frames outside the
     stretch are then within 30 % of the run without it (measured 1.14; before, the whole run's ATE
     was 5.3 times the clean one's)."""
     import dataclasses
