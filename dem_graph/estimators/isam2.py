@@ -132,6 +132,8 @@ class Isam2Slam(FrameDrivenEstimator):
         t0 = time.perf_counter()
         if self.frontend.begin_frame(event.t_s, event.textureless):
             self._drop_points()  # after a camera gap: the points it made stale
+            if not len(self.live):
+                filt.restart_map()
         dt, U, Q = self._motion_since_last_frame(event)
         A = adjoint(invert(U))  # carries every covariance over the frame's motion
         T_pred = filt.predict(U, Q, A)

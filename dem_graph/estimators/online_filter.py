@@ -80,15 +80,17 @@ class OnlineFilter:
     # --- one frame ---------------------------------------------------------------------------
     def predict(self, U: np.ndarray, Q: np.ndarray, A: np.ndarray | None = None) -> np.ndarray:
         """Carry the pose covariance over the motion ``U`` since the last frame (covariance ``Q``;
-        ``A``: ``adjoint(invert(U))`` when the caller has it); returns the predicted pose.
-
-        Without a live point (at the start, or after a camera gap dropped them all) there is no map
-        to be uncertain against: the points this frame seeds are placed from this pose, so the
-        covariance restarts at the initial one. (Carried on instead, a gap's growth would size every
-        later search region as if against the lost map, and keep it too large to search.)"""
+        ``A``: ``adjoint(invert(U))`` when the caller has it); returns the predicted pose."""
         A = adjoint(invert(U)) if A is None else A
-        self.P_loc = A @ self.P_loc @ A.T + Q if len(self.live) else self._P0.copy()
+        self.P_loc = A @ self.P_loc @ A.T + Q
         return self.T @ U
+
+    def restart_map(self) -> None:
+        """Every live point is gone (a camera gap made them stale): the points seeded next are placed
+        from this pose, so its covariance relative to the map restarts at the initial one. (Carried on
+        instead, the gap's growth would size every later search region as if against the lost map,
+        and keep it too large to search.)"""
+        self.P_loc = self._P0.copy()
 
     def track(self, image, t_s: float, T_pred: np.ndarray) -> FrameMatches:
         """The live points matched in this frame, each searched in its region from ``T_pred``."""
