@@ -67,6 +67,17 @@ def test_no_gap_no_change(smoke_log):
     assert U is U_true and Q is Q_ODOMETRY and bridge.last_report is None
 
 
+def test_a_gap_is_more_than_after_frames_whole_periods(smoke_log):
+    """At 25 Hz with ``after_frames`` 4: three frames missing (0.16 s, which floating point puts a
+    hair above 4 periods) are no gap; four are, and count as four frames missed."""
+    bridge = _bridge(smoke_log)
+    bridge.remember(0.36, np.zeros((240, 320), np.uint8), False)
+    assert (0.52 - 0.36) * 25 > 4  # the hair
+    assert bridge.frames_missed(0.52) == 0 and not bridge.after_gap(0.52)
+    assert bridge.frames_missed(0.56) == 4 and bridge.after_gap(0.56)
+    assert bridge.frames_missed(0.40) == 0
+
+
 def test_after_a_frame_without_texture_no_bridge(smoke_log):
     """The frame before the gap had no texture (a black frame): nothing to match, the increment stands."""
     f0, f1, U_true = _pair(smoke_log, 20, 45)

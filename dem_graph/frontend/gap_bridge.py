@@ -102,8 +102,8 @@ class GapBridge:
         texture: 0 unless the frame comes more than ``after_frames`` periods after it."""
         if self._last_t_s is None:
             return 0
-        periods = (t_s - self._last_t_s) * self.frame_rate_hz
-        return max(int(round(periods)) - 1, 0) if periods > self.config.after_frames else 0
+        periods = int(round((t_s - self._last_t_s) * self.frame_rate_hz))  # whole periods: a timestamp's jitter is no frame
+        return periods - 1 if periods > self.config.after_frames else 0
 
     def after_gap(self, t_s: float) -> bool:
         """Whether a frame at ``t_s`` comes after a gap the bridge can span (it starts at a frame with texture)."""
