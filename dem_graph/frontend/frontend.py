@@ -5,7 +5,8 @@ Points are where the guidance wants them, not where the image has corners (the p
   at the scan's time (spline of the pose history) and ``T_body_laser``;
 - camera points: seeded at the focus cells that hold no point, on the flat-ground guess with
   about 0.5 m of height uncertainty.
-A point is dropped when it leaves the image, falls behind, or fails tracking too often.
+A point is dropped when it leaves the image, falls behind, or fails tracking too often (the frames a
+camera gap swallowed count as failures; :mod:`~dem_graph.frontend.gap_bridge` bridges the gap).
 
 The estimator owns the 3D estimates; the front end hands out new points as body-frame positions
 with covariances, and tracks a point given the estimator's prediction (pixel and, for an active

@@ -37,7 +37,7 @@ from dem_graph.geometry.se3 import invert
 
 log = logging.getLogger(__name__)
 
-_FAR_M = 200.0  # a corner whose ray misses the ground plane (or meets it farther) is predicted at this depth, metres
+_FAR_M = 200.0  # corners are taken where the ground plane is nearer than this (the homography holds there), metres
 
 
 class GapBridgeConfig(StrictModel):
@@ -148,7 +148,9 @@ class GapBridge:
         return U_new, Q_new
 
     # --- the two-view refinement -------------------------------------------------------------
-    def _refine(self, image: np.ndarray, U: np.ndarray, Q: np.ndarray):
+    def _refine(self, image: np.ndarray, U: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, BridgeReport] | str:
+        """The increment ``U`` (covariance ``Q``) refined by the image pair, with its covariance and
+        what was done; or why it was refused (one clause)."""
         cfg = self.config
         uv0, uv1 = self._matches(image, U)
         n_tracked = len(uv0)
