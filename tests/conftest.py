@@ -52,6 +52,17 @@ def kitti_sample() -> Path:
     return SHARED_KITTI
 
 
+SHARED_KITTI_RAW = SHARED_KITTI.parent / "kitti_raw_0013" / "2011_09_26" / "2011_09_26_drive_0013_sync"
+
+
+@pytest.fixture(scope="session")
+def kitti_raw_drive() -> Path:
+    """The shared KITTI raw drive 0013 (48 frames, colour camera 2 only); skipped when absent."""
+    if not (SHARED_KITTI_RAW / "oxts").is_dir():
+        pytest.skip(f"shared KITTI raw drive not found at {SHARED_KITTI_RAW}")
+    return SHARED_KITTI_RAW
+
+
 @pytest.fixture(scope="session")
 def kitti_sequence(kitti_sample):
     """The shared sample opened once, its reference ground built once."""

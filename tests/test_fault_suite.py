@@ -233,8 +233,13 @@ def test_the_estimator_of_the_config_file_counts(smoke_folder, tmp_path, monkeyp
 
 @pytest.mark.parametrize(
     "option, flag, users",
-    [(["--rig", "other.yaml"], "--rig", "rosbag"), (["--ring", "5"], "--ring", "kitti-odometry, kitti-raw"), (["--sequence", "04"], "--sequence", "kitti-odometry")],
-    ids=["rig", "ring", "sequence"],
+    [
+        (["--rig", "other.yaml"], "--rig", "rosbag"),
+        (["--ring", "5"], "--ring", "kitti-odometry, kitti-raw"),
+        (["--sequence", "04"], "--sequence", "kitti-odometry"),
+        (["--camera", "2"], "--camera", "kitti-raw"),
+    ],
+    ids=["rig", "ring", "sequence", "camera"],
 )
 def test_an_option_the_folder_format_does_not_read_is_refused(smoke_folder, tmp_path, option, flag, users):
     r = _run(smoke_folder, tmp_path / "out", *option)

@@ -14,7 +14,7 @@ from dem_graph.datasets.kitti import KittiOdometrySequence, KittiRawSequence, op
 from dem_graph.datasets.open import detect_format
 from dem_graph.datasets.velodyne import RingLaser, elevation_deg, read_velodyne_bin, reference_surface, split_rings
 from dem_graph.errors import DatasetError
-from dem_graph.geometry.se3 import invert, make_pose, rotation_from_rpy
+from dem_graph.geometry.se3 import invert, make_pose, rotation_from_rpy, transform_points
 from dem_graph.pipeline import RunConfig, RunOverrides, run_config
 
 LIDAR_H = 1.73
@@ -259,6 +259,62 @@ def test_oxts_mercator_origin_is_zero():
 def test_raw_stamps_and_files_must_match(tmp_path):
     drive, _, _ = make_raw_drive(tmp_path, oxts_stamps=9)
     with pytest.raises(DatasetError, match=r"oxts/timestamps.txt: 9 time stamps but 11 files in oxts/data"):
+        open_kitti(drive)
+
+
+def _as_colour_camera_2(drive, t_rect=(0.06, -0.002, 0.003)):
+    """The drive's camera 0 moved to ``image_02`` as colour images, with a ``P_rect_02`` whose
+    camera sits at ``t_rect`` from camera 0's in its rectified frame (the stereo baseline)."""
+    import shutil
+
+    for png in sorted((drive / "image_00/data").glob("*.png")):
+        grey = cv2.imread(str(png), cv2.IMREAD_GRAYSCALE)
+        _write_png(drive / "image_02/data" / png.name, np.dstack([grey, grey // 2, 255 - grey]))
+    (drive / "image_02/timestamps.txt").write_text((drive / "image_00/timestamps.txt").read_text())
+    shutil.rmtree(drive / "image_00")
+    P2 = P0.copy()
+    P2[:, 3] = P0[:, :3] @ np.asarray(t_rect)
+    calib = drive.parent / "calib_cam_to_cam.txt"
+    calib.write_text(calib.read_text() + _calib_line("P_rect_02", P2) + "\n")
+    return P2
+
+
+def test_raw_layout_reads_the_colour_camera_as_grey_with_its_own_projection(tmp_path):
+    """A drive with only camera 2 (colour, as the shared drive 0013): it is told as KITTI raw and
+    camera 2 chosen; frames are its images converted to grey; and the rig projects a lidar point
+    where KITTI's own formula ``P_rect_02 @ R_rect_00 @ T_cam0_velo`` does."""
+    drive, _, _ = make_raw_drive(tmp_path)
+    P2 = _as_colour_camera_2(drive)
+    assert detect_format(drive) == "kitti-raw"
+    seq = open_kitti(drive)
+    assert seq.camera == 2 and seq.open_options()["camera"] == 2
+    frame = next(e for e in seq.events() if isinstance(e, CameraFrame))
+    colour = cv2.imread(str(drive / "image_02/data/0000000000.png"))
+    np.testing.assert_array_equal(frame.image, cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY))
+    X_lidar = np.array([[12.0, 1.5, -1.2], [25.0, -4.0, 0.5], [8.0, 0.2, -1.6]])
+    kitti = (P2 @ (T_CAM_LIDAR @ np.c_[X_lidar, np.ones(3)].T)).T  # R_rect_00 is the identity here
+    kitti = kitti[:, :2] / kitti[:, 2:]
+    rig = seq.rig
+    X_cam = transform_points(invert(rig.T_body_cam) @ seq.T_body_lidar, X_lidar)
+    uv, _ = rig.camera_model.project(X_cam)
+    np.testing.assert_allclose(uv, kitti, atol=1e-6)
+
+
+def test_a_drive_that_is_almost_kitti_raw_is_told_what_it_lacks(tmp_path):
+    drive, _, _ = make_raw_drive(tmp_path)
+    _as_colour_camera_2(drive)
+    with pytest.raises(DatasetError, match=r"image_00/data: not found: camera 0 is not in this drive \(it holds camera 2\)"):
+        open_kitti(drive, camera=0)
+    import shutil
+
+    shutil.rmtree(drive / "oxts")
+    (drive.parent / "calib_imu_to_velo.txt").unlink()
+    assert detect_format(drive) == "kitti-raw"  # a camera and the Velodyne: a drive, with parts missing
+    with pytest.raises(DatasetError, match=r"not a complete KITTI raw drive: oxts/data, oxts/timestamps.txt, calib_imu_to_velo.txt not found"):
+        open_kitti(drive)
+    shutil.rmtree(drive / "image_02")
+    (drive / "oxts").mkdir()
+    with pytest.raises(DatasetError, match=r"no camera: a KITTI raw drive holds one of image_00/data, image_01/data, image_02/data, image_03/data"):
         open_kitti(drive)
 
 

@@ -10,7 +10,7 @@ Odometry layout (:class:`KittiOdometrySequence`)::
 
 Raw layout (:class:`KittiRawSequence`)::
 
-    DATE/DATE_drive_XXXX_sync/image_00/data/*.png, image_00/timestamps.txt
+    DATE/DATE_drive_XXXX_sync/image_0N/data/*.png, image_0N/timestamps.txt  (N = 0, 1 grey; 2, 3 colour)
     DATE/DATE_drive_XXXX_sync/velodyne_points/data/*.bin, timestamps.txt (facing forward),
                                            timestamps_start.txt, timestamps_end.txt
     DATE/DATE_drive_XXXX_sync/oxts/data/*.txt (30 values per line), oxts/timestamps.txt
@@ -25,8 +25,11 @@ Frames (all right-handed, metres):
   mounting height), so that the body's z = 0 plane is the road under the vehicle, as the front end's
   focus area assumes. ``T_body_lidar`` is a pure translation.
 - camera: ``T_body_cam = T_body_lidar @ inv(T_cam_lidar)``, ``T_cam_lidar`` being ``Tr`` (odometry) or
-  ``R_rect_00 @ [R|T]`` of ``calib_velo_to_cam.txt`` (raw); intrinsics from ``P0`` / ``P_rect_00``, no
-  distortion (the images are rectified).
+  ``R_rect_00 @ [R|T]`` of ``calib_velo_to_cam.txt`` (raw), for camera 0; intrinsics from ``P0`` /
+  ``P_rect_00``, no distortion (the images are rectified). The raw layout reads any of its four
+  cameras (:data:`RAW_CAMERAS`; default the first present, grey first): camera N's rectified
+  projection ``P_rect_0N = K [I | K t]`` is camera 0's rectified frame moved by ``t`` (the stereo
+  baseline), so ``T_camN_lidar = Trans(t) @ T_cam0_lidar``. Colour images are read as grey.
 - laser: one ring of the 64 (see :mod:`dem_graph.datasets.velodyne`), its beams in the lidar frame,
   so ``T_body_laser = T_body_lidar``.
 - world, odometry layout: the body frame at the first frame (z up as far as the car stands level
@@ -182,7 +185,7 @@ def _read_image(path: Path) -> np.ndarray:
         raise DatasetError(path, "missing or not a readable image")
     if image.dtype != np.uint8:
         raise DatasetError(path, f"8-bit image expected, got {image.dtype}")
-    return image
+    return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image  # colour cameras 2 and 3: grey
 
 
 # ----------------------------------------------------------------------------------------------
@@ -558,12 +561,31 @@ def _find_calib(drive: Path, name: str) -> Path:
     return drive.parent / name
 
 
+RAW_CAMERAS = ("image_00", "image_01", "image_02", "image_03")  # grey left, grey right, colour left, colour right
+
+
+def raw_cameras(drive: Path) -> list[int]:
+    """The cameras a raw drive folder holds (those with a ``data`` folder), by number."""
+    return [n for n, name in enumerate(RAW_CAMERAS) if (drive / name / "data").is_dir()]
+
+
+def rectified_camera_from_cam0(P_rect: np.ndarray, T_rect0_x: np.ndarray) -> np.ndarray:
+    """``T_camN_x`` for the rectified camera whose projection is ``P_rect`` (3x4, ``K [I | K t]``),
+    from ``T_rect0_x`` in camera 0's rectified frame: a shift by ``t`` (the stereo baseline)."""
+    t = np.linalg.solve(P_rect[:, :3], P_rect[:, 3])
+    return make_pose(np.eye(3), t) @ T_rect0_x
+
+
 class KittiRawSequence(_KittiSequence):
     """A synced drive of the KITTI raw data (``DATE/DATE_drive_XXXX_sync``), calibration files in
-    the drive folder or its parent. Ground truth and odometry from OXTS. Options as
+    the drive folder or its parent. Ground truth and odometry from OXTS. ``camera``: which of
+    :data:`RAW_CAMERAS` (0-3; default the first the drive holds). Other options as
     :class:`KittiOdometrySequence`'s."""
 
     layout = "kitti-raw"
+
+    def open_options(self) -> dict:
+        return {**super().open_options(), "camera": self.camera}
 
     def __init__(
         self,
@@ -573,25 +595,40 @@ class KittiRawSequence(_KittiSequence):
         azimuth_step_deg: float = 0.25,
         lidar_height_m: float = LIDAR_HEIGHT_M,
         odometry_spec: OdometrySpec | None = None,
+        camera: int | None = None,
     ):
         drive = Path(drive)
         if not drive.is_dir():
             raise DatasetError(drive, "drive folder not found")
         self.path = drive
+        present = raw_cameras(drive)
+        if not present:
+            raise DatasetError(drive, f"no camera: a KITTI raw drive holds one of {', '.join(f'{c}/data' for c in RAW_CAMERAS)}")
+        if camera is None:
+            camera = present[0]
+        elif camera not in present:
+            raise DatasetError(drive / RAW_CAMERAS[camera] / "data", f"not found: camera {camera} is not in this drive (it holds camera {', '.join(map(str, present))})")
+        self.camera = int(camera)
+        image_folder = RAW_CAMERAS[self.camera]
+        needed = [f"{f}/{part}" for f in (image_folder, "velodyne_points", "oxts") for part in ("data", "timestamps.txt")]
+        missing = [n for n in needed if not (drive / n).exists()]
+        missing += [n for n in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt", "calib_imu_to_velo.txt") if not _find_calib(drive, n).is_file()]
+        if missing:
+            raise DatasetError(drive, f"not a complete KITTI raw drive: {', '.join(missing)} not found (calibration files in the drive folder or its parent)")
         cam_path = _find_calib(drive, "calib_cam_to_cam.txt")
         velo_path = _find_calib(drive, "calib_velo_to_cam.txt")
         imu_path = _find_calib(drive, "calib_imu_to_velo.txt")
         cam = read_calib_file(cam_path)
         velo = read_calib_file(velo_path)
         imu = read_calib_file(imu_path)
-        P_rect = _calib_matrix(cam, "P_rect_00", (3, 4), cam_path)
+        P_rect = _calib_matrix(cam, f"P_rect_0{self.camera}", (3, 4), cam_path)
         R_rect = make_pose(_calib_matrix(cam, "R_rect_00", (3, 3), cam_path), np.zeros(3))
         T_cam0_velo = make_pose(_calib_matrix(velo, "R", (3, 3), velo_path), _calib_matrix(velo, "T", (3, 1), velo_path)[:, 0])
         T_velo_imu = make_pose(_calib_matrix(imu, "R", (3, 3), imu_path), _calib_matrix(imu, "T", (3, 1), imu_path)[:, 0])
-        T_cam_lidar = nearest_pose(R_rect @ T_cam0_velo)
+        T_cam_lidar = rectified_camera_from_cam0(P_rect, nearest_pose(R_rect @ T_cam0_velo))
 
         streams = {}
-        for key, folder, suffix in (("image", "image_00", ".png"), ("velodyne", "velodyne_points", ".bin"), ("oxts", "oxts", ".txt")):
+        for key, folder, suffix in (("image", image_folder, ".png"), ("velodyne", "velodyne_points", ".bin"), ("oxts", "oxts", ".txt")):
             stamps_path = drive / folder / "timestamps.txt"
             files = _files(drive / folder / "data", suffix, f"{folder}/data")
             sec, ns = read_kitti_timestamps(stamps_path)
@@ -625,7 +662,7 @@ class KittiRawSequence(_KittiSequence):
         images = [f for f, k in zip(streams["image"][0], keep_img) if k]
         scans = [f for f, k in zip(streams["velodyne"][0], keep_scan) if k]
         if not images:
-            raise DatasetError(drive / "image_00", "no image after the first OXTS record")
+            raise DatasetError(drive / image_folder, "no image after the first OXTS record")
         first = _read_image(images[0])
         super().__init__(
             f"kitti-raw-{drive.name}",
@@ -648,7 +685,7 @@ class KittiRawSequence(_KittiSequence):
         )
 
     def __repr__(self) -> str:
-        return f"KittiRawSequence({str(self.path)!r}, frames={self.n_frames}, ring={self.ring})"
+        return f"KittiRawSequence({str(self.path)!r}, camera={self.camera}, frames={self.n_frames}, ring={self.ring})"
 
 
 def kitti_layout(path: str | Path) -> str | None:
@@ -656,25 +693,33 @@ def kitti_layout(path: str | Path) -> str | None:
     path = Path(path)
     if (path / "sequences").is_dir() or ((path / "image_0").is_dir() and (path / "times.txt").exists()):
         return "kitti-odometry"
-    if (path / "oxts").is_dir() and (path / "image_00").is_dir():
+    # a raw drive: two of its three streams are enough to call it one, so that the reader names what is missing
+    streams = [(path / "oxts").is_dir(), (path / "velodyne_points").is_dir(), any((path / c).is_dir() for c in RAW_CAMERAS)]
+    if sum(streams) >= 2:
         return "kitti-raw"
     return None
 
 
 def open_kitti(
-    path: str | Path, layout: str | None = None, sequence: str | int | None = None, ring: int | None = None, ground_distance_m: float = 10.0
+    path: str | Path,
+    layout: str | None = None,
+    sequence: str | int | None = None,
+    ring: int | None = None,
+    ground_distance_m: float = 10.0,
+    camera: int | None = None,
 ) -> _KittiSequence:
-    """Open a KITTI folder of either layout (``layout`` None: told from the folder)."""
+    """Open a KITTI folder of either layout (``layout`` None: told from the folder); ``camera``: the raw layout's camera (0-3)."""
     layout = layout or kitti_layout(path)
     if layout == "kitti-odometry":
         return KittiOdometrySequence(path, sequence, ring, ground_distance_m)
     if layout == "kitti-raw":
-        return KittiRawSequence(path, ring, ground_distance_m)
-    raise DatasetError(path, "not a KITTI folder (neither sequences/NN nor a raw drive with image_00 and oxts)")
+        return KittiRawSequence(path, ring, ground_distance_m, camera=camera)
+    raise DatasetError(path, "not a KITTI folder (neither sequences/NN nor a raw drive with oxts, velodyne_points and a camera image_00 .. image_03)")
 
 
 __all__ = [
     "KittiOdometrySequence",
+    "RAW_CAMERAS",
     "KittiRawSequence",
     "kitti_layout",
     "odometry_from_oxts",
@@ -683,4 +728,6 @@ __all__ = [
     "oxts_twists",
     "read_calib_file",
     "read_kitti_timestamps",
+    "raw_cameras",
+    "rectified_camera_from_cam0",
 ]
