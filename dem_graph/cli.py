@@ -123,9 +123,9 @@ def _pop_dataset_options(kwargs: dict) -> dict:
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option(
     "--estimator",
-    type=click.Choice(["gm", "ptpm", "isam2", "isam2-batch"]),
+    type=click.Choice(["gm", "ptpm", "isam2", "isam2-batch", "odometry"]),
     default=None,
-    help="gm, ptpm: the paper's EKF variants; isam2: the online graph (fixed-lag smoothing); isam2-batch: the online pass, then the whole log smoothed. [default: the config file's, else ptpm]",
+    help="gm, ptpm: the paper's EKF variants; isam2: the online graph (fixed-lag smoothing); isam2-batch: the online pass, then the whole log smoothed; odometry: the odometry integrated alone (a baseline). [default: the config file's, else ptpm]",
 )
 @click.option("--lag", "lag_s", type=float, default=None, help="isam2: fixed lag of the smoother, seconds.")
 @click.option("--keyframe-every", type=int, default=None, help="isam2: a keyframe every this many frames (1: every frame); isam2-batch: the same for its online pass [default: 1 for isam2, 5 for isam2-batch].")
@@ -250,7 +250,7 @@ def evaluate(run_dir, dataset, out_path) -> None:
 @main.command()
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Folder for the run folders, summary.json and the report.")
-@click.option("--estimators", default="gm,ptpm,isam2,isam2-batch", show_default=True, help="Comma-separated estimators to run.")
+@click.option("--estimators", default=None, help="Comma-separated estimators to run (odometry: the odometry integrated alone, a baseline). [default: odometry (when the log has it), gm, ptpm, isam2, isam2-batch]")
 @click.option("--max-frames", type=int, default=None, help="Stop each run after this many camera frames.")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="YAML run configuration shared by every run (its estimator is ignored).")
 @_dataset_options
@@ -262,7 +262,7 @@ def compare(dataset, out_dir, estimators, max_frames, config_path, **kwargs) -> 
     from dem_graph.studies.compare import compare as run_comparison
     from dem_graph.studies.compare import parse_estimators
 
-    names = parse_estimators(estimators)
+    names = parse_estimators(estimators) if estimators is not None else None
     sequence = _open_dataset(dataset, **_pop_dataset_options(kwargs))
     config = run_config(sequence, config_path, RunOverrides(max_frames=max_frames))
     result = run_comparison(sequence, out_dir, names, config, dataset=Path(dataset).resolve())

@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, get_args
+from typing import Literal
 
 import yaml
 from pydantic import Field, ValidationError
@@ -32,8 +32,9 @@ from dem_graph.evaluation.dem_metrics import LocalErrorConfig
 
 log = logging.getLogger(__name__)
 
-EstimatorName = Literal["gm", "ptpm", "isam2", "isam2-batch"]
-ESTIMATORS: tuple[str, ...] = get_args(EstimatorName)
+EstimatorName = Literal["gm", "ptpm", "isam2", "isam2-batch", "odometry"]
+ESTIMATORS: tuple[str, ...] = ("gm", "ptpm", "isam2", "isam2-batch")
+"""The estimators proper; ``odometry`` (the odometry integrated alone) is the baseline beside them."""
 
 
 class DemConfig(StrictModel):

@@ -44,6 +44,7 @@ from dem_graph.errors import DemGraphError
 from dem_graph.estimators.base import Estimator, FrameDrivenEstimator
 from dem_graph.estimators.ekf import EkfConfig, EkfSlam
 from dem_graph.estimators.isam2 import Isam2Config, Isam2Slam
+from dem_graph.estimators.odometry_only import ODOMETRY_BASELINE, OdometryOnly
 from dem_graph.estimators.settings import SharedSettings
 from dem_graph.frontend.focus import FocusArea
 from dem_graph.geometry.lie import so3_exp_many, so3_log_many
@@ -63,7 +64,9 @@ def make_estimator(rig: SensorRig, T_world_body_initial: np.ndarray, t_start_s: 
         return EkfSlam(*args, EkfConfig(**shared, **dict(config.ekf), variant=config.estimator))
     if config.estimator in ("isam2", "isam2-batch"):
         return Isam2Slam(*args, Isam2Config(**shared, **dict(config.isam2), batch=config.estimator == "isam2-batch"))
-    raise DemGraphError(f"unknown estimator '{config.estimator}'; choose one of {', '.join(ESTIMATORS)}")
+    if config.estimator == ODOMETRY_BASELINE:
+        return OdometryOnly(*args, config.motion)
+    raise DemGraphError(f"unknown estimator '{config.estimator}'; choose one of {', '.join((*ESTIMATORS, ODOMETRY_BASELINE))}")
 
 
 @dataclass

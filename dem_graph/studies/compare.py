@@ -26,6 +26,7 @@ from dem_graph.datasets.base import Sequence
 from dem_graph.datasets.open import open_sequence
 from dem_graph.dem.layers import Dem
 from dem_graph.errors import DatasetError, DemGraphError, one_line
+from dem_graph.estimators.odometry_only import ODOMETRY_BASELINE
 from dem_graph.evaluation.dem_metrics import LocalErrorSeries
 from dem_graph.evaluation.timing import format_table, machine_description
 from dem_graph.geometry.trajectory import Trajectory
@@ -113,13 +114,21 @@ class Comparison:
 
 
 def parse_estimators(text: str | list[str] | tuple[str, ...]) -> tuple[str, ...]:
-    """Estimator names from ``"gm,ptpm"`` or a sequence, in order, without repeats; unknown names are an error."""
+    """Estimator names from ``"gm,ptpm"`` or a sequence, in order, without repeats (``odometry``,
+    the odometry-only baseline, among them); unknown names are an error."""
+    known = (ODOMETRY_BASELINE, *ESTIMATORS)
     names = [n.strip() for n in (text.split(",") if isinstance(text, str) else text)]
     names = list(dict.fromkeys(n for n in names if n))
-    unknown = [n for n in names if n not in ESTIMATORS]
+    unknown = [n for n in names if n not in known]
     if unknown or not names:
-        raise DemGraphError(f"unknown estimator {', '.join(repr(n) for n in unknown) or '(none given)'}: choose from {', '.join(ESTIMATORS)}")
+        raise DemGraphError(f"unknown estimator {', '.join(repr(n) for n in unknown) or '(none given)'}: choose from {', '.join(known)}")
     return tuple(names)
+
+
+def default_estimators(sequence: Sequence) -> tuple[str, ...]:
+    """What ``compare`` runs unless told: the odometry-only baseline first when the log has
+    odometry (what the camera and the laser add is then in every table), then every estimator."""
+    return ((ODOMETRY_BASELINE,) if sequence.has_odometry else ()) + ESTIMATORS
 
 
 def _run_one(sequence: Sequence, config: RunConfig, name: str, run_dir: Path, dataset: str) -> tuple[EstimatorRun, BestDem | None]:
@@ -161,7 +170,7 @@ def _warm_up(sequence: Sequence, config: RunConfig, name: str, frames: int) -> N
 def compare(
     sequence: Sequence | str | Path,
     out_dir: str | Path,
-    estimators: str | tuple[str, ...] = ESTIMATORS,
+    estimators: str | tuple[str, ...] | None = None,
     config: RunConfig | None = None,
     dataset: str | Path | None = None,
     warm_up_frames: int = 3,
@@ -174,8 +183,8 @@ def compare(
     Before the runs, the first estimator runs untimed on ``warm_up_frames`` frames (0: not at all),
     so that what the process loads once (compiled kernels, caches) does not count in the first
     run's time per frame only."""
-    names = parse_estimators(estimators)
     sequence = open_sequence(sequence)
+    names = parse_estimators(estimators if estimators is not None else default_estimators(sequence))
     config = config or run_config(sequence)
     out_dir = Path(out_dir)
     try:
