@@ -1,5 +1,5 @@
 # Two commands do everything on a fresh Debian/Ubuntu machine with Python >= 3.10:
-#   make demo   set up, simulate the default scenario (dataset + picture), compare GM, PTPM, iSAM2 and iSAM2-batch on it
+#   make demo   set up, simulate the default scenario (dataset + picture), compare GM, PTPM, iSAM2 and iSAM2-batch on it (after the odometry alone)
 #               (one table, run folders and a report under out/demo/compare/)
 #   make test   set up, check the import layers (pyproject.toml), then run the test suite
 PYTHON ?= python3
@@ -11,7 +11,7 @@ OUT ?= out
 
 demo: setup
 	$(BIN)/dem-graph simulate --scenario demo --out $(OUT)/demo/dataset --overwrite
-	$(BIN)/dem-graph compare $(OUT)/demo/dataset --estimators gm,ptpm,isam2,isam2-batch --out $(OUT)/demo/compare
+	$(BIN)/dem-graph compare $(OUT)/demo/dataset --out $(OUT)/demo/compare
 
 test: setup
 	$(BIN)/lint-imports --no-logo
