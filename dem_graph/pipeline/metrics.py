@@ -33,6 +33,29 @@ class PointsPerFrame(MetricsModel):
     tracked_median: float  # points tracked per frame, median
 
 
+class TrackingYield(MetricsModel):
+    """How the searches for live points ended, from the front end's ``track_*`` counters: the
+    fraction matched, the fraction of those the pose update rejected as outliers, and why the rest
+    failed (fractions of all searches, by the tracker's status, largest first)."""
+
+    searches: int
+    matched_fraction: float
+    outlier_fraction_of_matched: float
+    failed_fraction: dict[str, float]
+
+
+def tracking_yield(counters: dict) -> TrackingYield | None:
+    """The :class:`TrackingYield` of a run's counters; None when nothing was searched."""
+    searches = {k.removeprefix("track_"): int(v) for k, v in counters.items() if k.startswith("track_")}
+    total = sum(searches.values())
+    if total == 0:
+        return None
+    matched = searches.pop("ok", 0)
+    failed = {k: v / total for k, v in sorted(searches.items(), key=lambda kv: -kv[1]) if v}
+    outliers = int(counters.get("outlier_rejected", 0))
+    return TrackingYield(searches=total, matched_fraction=matched / total, outlier_fraction_of_matched=outliers / matched if matched else 0.0, failed_fraction=failed)
+
+
 class RunMetrics(MetricsModel):
     """Everything ``metrics.json`` holds. A field is None (and left out of the file) when it was not
     measured: no frame, no ground truth, no DEM, or (``dem-graph evaluate``) not in the run folder."""
@@ -43,6 +66,7 @@ class RunMetrics(MetricsModel):
     error: str | None = None  # why the run stopped early (its results go up to there)
     time_per_frame: dict[str, PhaseTiming] | None = None  # by phase: total, prediction, tracking, update, map, graph, ...
     points_per_frame: PointsPerFrame | None = None
+    tracking: TrackingYield | None = None  # how the searches for live points ended
     map_points: int | None = None  # points ever estimated
     events: dict[str, int | float] | None = None  # the estimator's counters (tracking outcomes, points added and dropped, ...)
     trajectory: TrajectoryAccuracy | None = None  # the per-frame estimate against the truth
@@ -69,6 +93,7 @@ def compute_metrics(sequence: Sequence, res: EstimatorResult, error: str | None 
     metrics.points_per_frame = PointsPerFrame(live_median=float(np.median(live)), live_max=int(live.max()), tracked_median=float(np.median(tracked)))
     metrics.map_points = len(res.points)
     metrics.events = dict(sorted(res.counters.items()))
+    metrics.tracking = tracking_yield(metrics.events)
     gt = sequence.ground_truth
     if gt is not None and len(res.frames) > 1:
         est, covered = within_truth_span(res.trajectory(), gt.trajectory)
@@ -98,6 +123,12 @@ def summary_lines(m: RunMetrics) -> list[str]:
     if m.time_per_frame is not None and m.points_per_frame is not None:
         t, p = m.time_per_frame["total"], m.points_per_frame
         lines.append(f"time per frame: median {t.median_ms:.1f} ms, p95 {t.p95_ms:.1f} ms; live points median {p.live_median:.0f}, tracked {p.tracked_median:.0f}")
+    if m.tracking is not None:
+        y = m.tracking
+        failed = ", ".join(f"{k.replace('_', ' ')} {100 * v:.{0 if 100 * v >= 1 else 1}f} %" for k, v in y.failed_fraction.items()) or "none"
+        lines.append(
+            f"tracking: {100 * y.matched_fraction:.0f} % of {y.searches} searches matched ({100 * y.outlier_fraction_of_matched:.0f} % of them then rejected as outliers); failed: {failed}"
+        )
     if m.trajectory is not None:
         tr = m.trajectory
         lines.append(f"ATE RMSE {tr.ate_rmse_m:.3f} m ({tr.ate_aligned_rmse_m:.3f} m aligned), final error {tr.final_error_m:.3f} m over {tr.distance_m:.1f} m: drift {tr.drift_percent:.2f} %")
