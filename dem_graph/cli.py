@@ -278,6 +278,57 @@ def compare(dataset, out_dir, estimators, max_frames, config_path, **kwargs) -> 
         sys.exit(2)
 
 
+def _number_list(text: str, kind, what: str) -> tuple:
+    """``"0-7"``, ``"1,2,5"`` or ``"1.5"`` as numbers; a usage error naming ``what`` otherwise."""
+    out = []
+    try:
+        for part in (p.strip() for p in text.split(",") if p.strip()):
+            if kind is int and "-" in part[1:]:
+                lo, hi = part.split("-", 1) if not part.startswith("-") else (part, part)
+                out.extend(range(int(lo), int(hi) + 1))
+            else:
+                out.append(kind(part))
+    except ValueError:
+        raise click.BadParameter(f"{text!r} is not a list of numbers", param_hint=what) from None
+    if not out:
+        raise click.BadParameter("give at least one", param_hint=what)
+    return tuple(dict.fromkeys(out))
+
+
+@main.command()
+@click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Folder for the simulated datasets and each run's result (study_results/): a study started again keeps what is done there.")
+@click.option("--scenario", "scenario_name", default="paper", show_default=True, help="Simulated scenario.")
+@click.option("--seeds", default="0-7", show_default=True, help="Seeds: a list (0,3,5) or a range (0-7).")
+@click.option("--speeds", default="1.5", show_default=True, help="Speeds, m/s, comma-separated.")
+@click.option("--budgets", default="140", show_default=True, help="Caps on live points, comma-separated.")
+@click.option("--estimators", default="gm,ptpm,isam2,isam2-batch", show_default=True, help="Comma-separated estimators.")
+@click.option("--max-frames", type=int, default=None, help="Stop each run after this many camera frames.")
+@click.option("--length", "length_m", type=float, default=None, help="Shorten the drive to this many metres.")
+@click.option("--scheduler", default="local", show_default=True, help="local: a Dask cluster on this machine; serial: one run after the other in this process; or the address of a Dask scheduler (tcp://HOST:8786).")
+@click.option("--workers", "n_workers", type=click.IntRange(1, None), default=None, help="local: worker processes [default: one per core].")
+@click.option("--out", "csv_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="The rows as CSV [default: DATA/study.csv].")
+@_friendly_errors
+def study(data_dir, scenario_name, seeds, speeds, budgets, estimators, max_frames, length_m, scheduler, n_workers, csv_path) -> None:
+    """Accuracy against cost: every estimator and point budget on the scenario simulated for every
+    seed and speed, as a grid of runs on Dask (a local cluster unless told); prints the table and
+    what it says, writes the CSV."""
+    from dem_graph.studies.compare import parse_estimators
+    from dem_graph.studies.study import estimator_study
+
+    result = estimator_study(
+        data_dir, scenario_name, _number_list(seeds, int, "--seeds"), _number_list(speeds, float, "--speeds"), _number_list(budgets, int, "--budgets"),
+        parse_estimators(estimators), max_frames, length_m, scheduler, n_workers,
+    )
+    click.echo(result.table())
+    click.echo(result.conclusion())
+    path = result.write_csv(csv_path or Path(data_dir) / "study.csv")
+    click.echo(f"rows: {path}")
+    failed = [r for r in result.rows if r.status != "ok"]
+    if failed:
+        click.echo(f"dem-graph: error: {len(failed)} of {len(result.rows)} runs failed or stopped ({'; '.join(f'{r.estimator} seed {r.seed}: {r.status}' for r in failed[:3])})", err=True)
+        sys.exit(2)
+
+
 @main.command()
 @click.option("--estimators", default="gm,ptpm,isam2,isam2-process", show_default=True, help="Comma-separated estimators (gm, ptpm, isam2, isam2-process: isam2 with its graph in a second process).")
 @click.option("--points", default="50,100,130,150,200,300", show_default=True, help="Comma-separated caps on live points.")

@@ -86,7 +86,7 @@ def test_estimator_study_notebook_table_figure_and_conclusion(tmp_path):
         assert 0.0 < float(r["ate_m"]) < 1.0 and math.isfinite(float(r["frame_ms_median"])) and float(r["frame_ms_median"]) > 0.0
     # each seed and speed was simulated at its speed: the dataset's scenario says so
     for s in seeds:
-        scenario_yaml = (tmp_path / "data" / f"smoke_seed{s}_2mps" / "scenario.yaml").read_text()
+        scenario_yaml = (tmp_path / "data" / f"smoke_seed{s}_2mps_1m" / "scenario.yaml").read_text()  # the drive shortened to 1 m: in the name
         assert "speed_mps: 2.0" in scenario_yaml and f"seed: {s}" in scenario_yaml
     assert (tmp_path / "accuracy_cost.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # the conclusion names the estimator with the lowest mean ATE of the table, and that mean

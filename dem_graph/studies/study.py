@@ -23,10 +23,10 @@ from dem_graph.errors import DatasetError, DemGraphError, one_line
 from dem_graph.evaluation.timing import format_table
 from dem_graph.pipeline.config import ESTIMATORS
 from dem_graph.pipeline.run import run_estimator
-from dem_graph.progress import progress
 from dem_graph.sim.pipeline import simulate
 from dem_graph.sim.scenarios import scenario
 from dem_graph.studies.bench_estimators import config_for_points
+from dem_graph.studies.grid import LOCAL, GridJob, JobFailure, run_grid
 from dem_graph.studies.headline import headline
 
 
@@ -138,6 +138,21 @@ def _run_row(sequence, name: str, seed: int, speed_mps: float, max_points: int, 
     )
 
 
+def simulate_job(scenario_name: str, seed: int, speed_mps: float, length_m: float | None, folder: str) -> dict:
+    """One of the study's datasets simulated into ``folder`` (a grid job: runs on a worker)."""
+    simulate(scenario(scenario_name, seed=seed, speed_mps=speed_mps, length_m=length_m), folder, overwrite=True, preview=False)
+    return {"folder": folder}
+
+
+def run_job(folder: str, name: str, seed: int, speed_mps: float, max_points: int, max_frames: int | None) -> dict:
+    """One run of the study on the dataset in ``folder``, as a :class:`StudyRow`'s fields (a grid job)."""
+    return asdict(_run_row(FolderSequence(folder), name, seed, speed_mps, max_points, max_frames))
+
+
+def _dataset_name(scenario_name: str, seed: int, speed_mps: float, length_m: float | None) -> str:
+    return f"{scenario_name}_seed{seed}_{speed_mps:g}mps" + ("" if length_m is None else f"_{length_m:g}m")
+
+
 def estimator_study(
     data_dir: str | Path,
     scenario_name: str = "paper",
@@ -147,20 +162,45 @@ def estimator_study(
     estimators=ESTIMATORS,
     max_frames: int | None = None,
     length_m: float | None = None,
+    scheduler: str = LOCAL,
+    n_workers: int | None = None,
 ) -> StudyResult:
     """Every estimator with every point budget on the scenario simulated for every seed and speed
-    (``length_m`` shortens the drive; an existing dataset folder of the same name is replaced)."""
-    rows = []
+    (``length_m`` shortens the drive), as a grid of jobs (:func:`~dem_graph.studies.grid.run_grid`):
+    ``scheduler`` ``"local"`` (default) on a local Dask cluster, ``"serial"`` in this process, or the
+    address of a Dask scheduler. Datasets go to ``data_dir/<scenario>_seed<S>_<V>mps[_<L>m]`` and each
+    result to ``data_dir/study_results/``; a study started again keeps what is done there and runs
+    the rest. A run that fails is a row with its error; the others go on."""
     data_dir = Path(data_dir)
-    for seed in seeds:
-        for speed in speeds_mps:
-            folder = data_dir / f"{scenario_name}_seed{seed}_{speed:g}mps"
-            simulate(scenario(scenario_name, seed=seed, speed_mps=speed, length_m=length_m), folder, overwrite=True, preview=False)
-            sequence = FolderSequence(folder)
-            jobs = [(name, n) for name in estimators for n in point_budgets]
-            for name, n in progress(jobs, total=len(jobs), desc=f"seed {seed}, {speed:g} m/s"):
-                rows.append(_run_row(sequence, name, seed, float(speed), int(n), max_frames))
+    results_dir = data_dir / "study_results"
+    datasets = {
+        (seed, float(speed)): str(data_dir / _dataset_name(scenario_name, seed, float(speed), length_m)) for seed in seeds for speed in speeds_mps
+    }
+    sims = [
+        GridJob(f"simulate_{Path(folder).name}", simulate_job, (scenario_name, seed, speed, length_m, folder)) for (seed, speed), folder in datasets.items()
+    ]
+    simulated = run_grid(sims, results_dir, scheduler, n_workers, desc="simulate")
+    jobs, where = [], {}
+    for (seed, speed), folder in datasets.items():
+        sim_key = f"simulate_{Path(folder).name}"
+        for name in estimators:
+            for n in point_budgets:
+                key = f"run_{Path(folder).name}_{name}_n{int(n)}" + ("" if max_frames is None else f"_f{max_frames}")
+                where[key] = (name, seed, speed, int(n))
+                if isinstance(simulated[sim_key], JobFailure):
+                    continue
+                jobs.append(GridJob(key, run_job, (folder, name, seed, speed, int(n), max_frames)))
+    done = run_grid(jobs, results_dir, scheduler, n_workers, desc="runs")
+    rows = []
+    nan = math.nan
+    for key, (name, seed, speed, n) in where.items():
+        result = done.get(key)
+        if isinstance(result, dict):
+            rows.append(StudyRow(**result))
+        else:
+            why = result.error if isinstance(result, JobFailure) else f"its dataset could not be simulated: {simulated[f'simulate_{_dataset_name(scenario_name, seed, speed, length_m)}'].error}"
+            rows.append(StudyRow(name, seed, speed, n, nan, nan, nan, nan, nan, nan, f"failed: {why}"))
     return StudyResult(rows, scenario_name, max_frames)
 
 
-__all__ = ["EstimatorSummary", "StudyResult", "StudyRow", "estimator_study"]
+__all__ = ["EstimatorSummary", "StudyResult", "StudyRow", "estimator_study", "run_job", "simulate_job"]
