@@ -115,6 +115,7 @@ def _run_serial(jobs: list[GridJob], scheduler: str, n_workers: int | None, desc
 def _run_dask(jobs: list[GridJob], scheduler: str, n_workers: int | None, desc: str):
     from distributed import Client, LocalCluster, as_completed
 
+    logging.getLogger("distributed").setLevel(max(logging.WARNING, logging.getLogger("distributed").getEffectiveLevel()))  # its start-up chatter
     if scheduler == LOCAL:
         cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=logging.ERROR)
         client = Client(cluster)
