@@ -158,7 +158,7 @@ class FrontEnd:
         of every live point, so after a gap of ``max_misses`` frames or more every point is lost and
         the estimator drops it before searching (:meth:`drop_points`): its patch and its prediction
         are staler than after as many failed searches, and on the `smoke` log the few such points
-        matched after a 1 s gap pulled the pose 3 cm off."""
+        matched after a 1 s gap pulled the pose 4.6 cm off (GM, seed 5)."""
         missed = 0 if textureless else self.gap_bridge.frames_missed(t_s)
         self._gap_s = (self.gap_bridge.last_t_s, t_s) if missed else None
         if missed:

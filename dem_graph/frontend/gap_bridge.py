@@ -78,7 +78,7 @@ class GapBridge:
     frame_rate_hz: float
     counters: Counter = field(default_factory=Counter)
     last_report: BridgeReport | None = None
-    _last_image: np.ndarray | None = None  # the last frame with texture, grey
+    _last_image: np.ndarray | None = None  # the last frame with texture, as it came (made grey only when a gap needs it)
     _last_t_s: float | None = None  # its time
     # the motion since it over the frames without texture that followed it, and its covariance
     _U_dark: np.ndarray = field(default_factory=lambda: np.eye(4))
@@ -89,7 +89,7 @@ class GapBridge:
         if textureless and self._last_t_s is not None:
             return
         self._last_t_s = float(t_s)
-        self._last_image = None if textureless else _grey(image)
+        self._last_image = None if textureless else image
         self._U_dark, self._Q_dark = np.eye(4), np.zeros((6, 6))
 
     @property
@@ -209,7 +209,7 @@ class GapBridge:
         (pyramidal Lucas-Kanade, kept when tracking back returns within a pixel) and carried back
         through the homography."""
         cfg = self.config
-        prev = self._last_image
+        prev = _grey(self._last_image)
         H = self._ground_homography(U)  # first image's pixels -> second image's
         h, w = image.shape[:2]
         warped = cv2.warpPerspective(prev, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)

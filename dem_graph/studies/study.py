@@ -176,13 +176,12 @@ def estimator_study(
     datasets = {
         (seed, float(speed)): str(data_dir / _dataset_name(scenario_name, seed, float(speed), length_m)) for seed in seeds for speed in speeds_mps
     }
-    sims = [
-        GridJob(f"simulate_{Path(folder).name}", simulate_job, (scenario_name, seed, speed, length_m, folder)) for (seed, speed), folder in datasets.items()
-    ]
+    sim_keys = {where: f"simulate_{Path(folder).name}" for where, folder in datasets.items()}
+    sims = [GridJob(sim_keys[(seed, speed)], simulate_job, (scenario_name, seed, speed, length_m, folder)) for (seed, speed), folder in datasets.items()]
     simulated = run_grid(sims, results_dir, scheduler, n_workers, desc="simulate")
     jobs, where = [], {}
     for (seed, speed), folder in datasets.items():
-        sim_key = f"simulate_{Path(folder).name}"
+        sim_key = sim_keys[(seed, speed)]
         for name in estimators:
             for n in point_budgets:
                 key = f"run_{Path(folder).name}_{name}_n{int(n)}" + ("" if max_frames is None else f"_f{max_frames}")
@@ -198,7 +197,7 @@ def estimator_study(
         if isinstance(result, dict):
             rows.append(StudyRow(**result))
         else:
-            why = result.error if isinstance(result, JobFailure) else f"its dataset could not be simulated: {simulated[f'simulate_{_dataset_name(scenario_name, seed, speed, length_m)}'].error}"
+            why = result.error if isinstance(result, JobFailure) else f"its dataset could not be simulated: {simulated[sim_keys[(seed, speed)]].error}"
             rows.append(StudyRow(name, seed, speed, n, nan, nan, nan, nan, nan, nan, f"failed: {why}"))
     return StudyResult(rows, scenario_name, max_frames)
 
