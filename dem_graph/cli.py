@@ -300,24 +300,25 @@ def _number_list(text: str, kind, what: str) -> tuple:
 @click.option("--scenario", "scenario_name", default="paper", show_default=True, help="Simulated scenario.")
 @click.option("--seeds", default="0-7", show_default=True, help="Seeds: a list (0,3,5) or a range (0-7).")
 @click.option("--speeds", default="1.5", show_default=True, help="Speeds, m/s, comma-separated.")
-@click.option("--budgets", default="140", show_default=True, help="Caps on live points, comma-separated.")
-@click.option("--estimators", default="gm,ptpm,isam2,isam2-batch", show_default=True, help="Comma-separated estimators.")
+@click.option("--budgets", default="default", show_default=True, help="Caps on live points, comma-separated; 'default': dem-graph run's settings.")
+@click.option("--estimators", default="gm,ptpm,isam2,isam2-batch", show_default=True, help="Comma-separated estimators (isam2-process: isam2 with its graph in a second process).")
+@click.option("--realtime", is_flag=True, help="Give each run its events at the camera's rate (fair only with a core per run: use --workers).")
 @click.option("--max-frames", type=int, default=None, help="Stop each run after this many camera frames.")
 @click.option("--length", "length_m", type=float, default=None, help="Shorten the drive to this many metres.")
 @click.option("--scheduler", default="local", show_default=True, help="local: a Dask cluster on this machine; serial: one run after the other in this process; or the address of a Dask scheduler (tcp://HOST:8786).")
 @click.option("--workers", "n_workers", type=click.IntRange(1, None), default=None, help="local: worker processes [default: one per core].")
 @click.option("--out", "csv_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="The rows as CSV [default: DATA/study.csv].")
 @_friendly_errors
-def study(data_dir, scenario_name, seeds, speeds, budgets, estimators, max_frames, length_m, scheduler, n_workers, csv_path) -> None:
+def study(data_dir, scenario_name, seeds, speeds, budgets, estimators, realtime, max_frames, length_m, scheduler, n_workers, csv_path) -> None:
     """Accuracy against cost: every estimator and point budget on the scenario simulated for every
     seed and speed, as a grid of runs on Dask (a local cluster unless told); prints the table and
     what it says, writes the CSV."""
-    from dem_graph.studies.compare import parse_estimators
-    from dem_graph.studies.study import estimator_study
+    from dem_graph.studies.study import estimator_study, parse_study_estimators
 
+    caps = [None if b.strip() == "default" else _number_list(b, int, "--budgets")[0] for b in budgets.split(",") if b.strip()]
     result = estimator_study(
-        data_dir, scenario_name, _number_list(seeds, int, "--seeds"), _number_list(speeds, float, "--speeds"), _number_list(budgets, int, "--budgets"),
-        parse_estimators(estimators), max_frames, length_m, scheduler, n_workers,
+        data_dir, scenario_name, _number_list(seeds, int, "--seeds"), _number_list(speeds, float, "--speeds"), caps,
+        parse_study_estimators(estimators), max_frames, length_m, scheduler, n_workers, realtime,
     )
     click.echo(result.table())
     click.echo(result.conclusion())

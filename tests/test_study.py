@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+from dataclasses import replace
 
 import pytest
 
@@ -38,6 +39,17 @@ def test_summary_means_over_the_runs_with_a_finite_ate():
     assert math.isclose(summary["ptpm"].mean_ate_m, 0.15, abs_tol=1e-12) and math.isclose(summary["ptpm"].mean_frame_ms, 50.0, abs_tol=1e-12)
     # the failed run is left out, not counted as zero
     assert summary["isam2"].runs == 1 and math.isclose(summary["isam2"].mean_ate_m, 0.25, abs_tol=1e-12)
+
+
+def test_height_error_at_the_end_is_summarised_with_its_standard_error_and_the_dem_in_cm():
+    dz = {1: 0.10, 2: -0.04}
+    rows = [replace(_row("isam2-batch", seed, 0.1, 10.0), final_height_error_m=dz[seed], dem_rmse_m=0.02 * seed) for seed in (1, 2)]
+    (s,) = StudyResult(rows, "paper", None).summary()
+    assert math.isclose(s.mean_final_height_error_m, 0.03, abs_tol=1e-12)
+    assert math.isclose(s.final_height_error_se_m, 0.07, abs_tol=1e-12)  # std (ddof 1) 0.0990 / sqrt(2)
+    assert math.isclose(s.mean_dem_rmse_m, 0.03, abs_tol=1e-12)
+    text = StudyResult(rows, "paper", None).conclusion()
+    assert "isam2-batch +0.030 +- 0.070 m" in text and "isam2-batch 3.0 cm" in text
 
 
 def test_conclusion_names_the_most_accurate_and_the_fastest_from_the_numbers():

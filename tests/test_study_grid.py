@@ -37,7 +37,7 @@ def test_a_study_started_again_keeps_what_is_done(tmp_path, serial_rows, monkeyp
     results = sorted(p.name for p in (tmp_path / "study_results").iterdir())
     assert len(results) == 6  # two datasets simulated, four runs
     # one run's result lost (a study stopped part way): only that run is made again
-    (tmp_path / "study_results" / "run_smoke_seed4_1.5mps_1.2m_isam2_n140_f15.json").unlink()
+    (tmp_path / "study_results" / "run_smoke_seed4_1.5mps_1.2m_isam2_default_f15.json").unlink()
     ran = []
     import dem_graph.studies.study as study
 

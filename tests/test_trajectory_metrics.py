@@ -77,6 +77,19 @@ def test_linear_drift_of_one_metre_over_100_m_is_one_percent():
     assert m.final_error_m == pytest.approx(1.0)
     assert m.drift_percent == pytest.approx(1.0)
     assert m.ate_rmse_m == pytest.approx(np.sqrt(np.mean((t / 100.0) ** 2)))
+    assert m.final_height_error_m == pytest.approx(0.0, abs=1e-12)  # the drift is sideways
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_the_height_error_at_the_end_keeps_its_sign(sign):
+    t = np.linspace(0.0, 10.0, 11)
+    positions = np.stack([t, np.zeros_like(t), np.zeros_like(t)], axis=1)
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (len(t), 1))
+    truth = Trajectory(t, positions, q)
+    estimate = Trajectory(t, positions + np.stack([np.zeros_like(t), np.zeros_like(t), sign * 0.02 * t], axis=1), q)
+    m = trajectory_metrics(estimate, truth)
+    assert m.final_height_error_m == pytest.approx(sign * 0.2, abs=1e-12)  # 2 cm per metre over 10 m, estimate above the truth when positive
+    assert m.final_error_m == pytest.approx(0.2, abs=1e-12)
 
 
 def test_distance_follows_the_truth_between_estimate_samples():

@@ -52,6 +52,7 @@ class TrajectoryMetrics:
     distance_m: float  # distance travelled along the truth over the estimate's span
     drift_percent: float  # final_error_m / distance_m * 100 (NaN when distance_m is 0)
     n_poses: int
+    final_height_error_m: float = math.nan  # signed: the last pose's world z minus the truth's (positive: too high)
 
     def as_dict(self) -> dict:
         """The fields as plain Python numbers (``float``, ``int`` for ``n_poses``), for JSON."""
@@ -122,6 +123,7 @@ def trajectory_metrics(estimate: Trajectory, truth: Trajectory) -> TrajectoryMet
         distance_m=distance,
         drift_percent=final / distance * 100.0 if distance > 0.0 else math.nan,
         n_poses=len(errors.t_s),
+        final_height_error_m=float(errors.position_error_m[-1, 2]),
     )
 
 
@@ -309,6 +311,7 @@ class TrajectoryAccuracy(MetricsModel):
     n_poses: int
     ate_aligned_rmse_m: Number
     rpe: RpeSummary
+    final_height_error_m: Number = math.nan  # signed: the last pose's world z minus the truth's
 
 
 def accuracy_summary(estimate: Trajectory, truth: Trajectory, rpe_delta_m: float = RPE_DELTA_M) -> TrajectoryAccuracy:

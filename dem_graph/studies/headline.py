@@ -32,6 +32,7 @@ COLUMNS: tuple[Column, ...] = (
     Column("ate_anchored_rmse_m", "ATE (m)", ("trajectory", "ate_rmse_m")),
     Column("ate_aligned_rmse_m", "ATE aligned (m)", ("trajectory", "ate_aligned_rmse_m")),
     Column("drift_percent", "drift (%)", ("trajectory", "drift_percent"), digits=2),
+    Column("final_height_error_m", "end height error (m)", ("trajectory", "final_height_error_m")),
     Column("rpe_10m_translation_rmse_m", "RPE 10 m (m)", ("trajectory", "rpe", "translation_rmse_m")),
     Column("rpe_10m_rotation_rmse_deg", "RPE 10 m (deg)", ("trajectory", "rpe", "rotation_rmse_deg"), digits=2),
     Column("dem_rmse_laser_cells_m", "DEM RMSE (cm)", ("dem", "height_error_laser_cells", "rmse_m"), scale=100.0, digits=2),

@@ -21,11 +21,12 @@ import numpy as np
 from dem_graph.datasets.folder import FolderSequence
 from dem_graph.errors import DatasetError, DemGraphError, one_line
 from dem_graph.evaluation.timing import format_table
-from dem_graph.pipeline.config import ESTIMATORS
+from dem_graph.pipeline.config import ESTIMATORS, RunConfig, run_config
 from dem_graph.pipeline.run import run_estimator
 from dem_graph.sim.pipeline import simulate
 from dem_graph.sim.scenarios import scenario
 from dem_graph.studies.bench_estimators import config_for_points
+from dem_graph.studies.compare import parse_estimators
 from dem_graph.studies.grid import LOCAL, GridJob, JobFailure, run_grid
 from dem_graph.studies.headline import headline
 
@@ -43,10 +44,17 @@ class StudyRow:
     frame_ms_p95: float
     live_points: float  # median per frame
     status: str = "ok"  # or the one-line error of a run that failed or stopped
+    final_height_error_m: float = math.nan  # signed, the last pose's z minus the truth's
+    dem_rmse_m: float = math.nan  # the DEM's height RMSE over the laser cells
+    matched_fraction: float = math.nan  # the tracking yield: searches for live points that matched
 
 
 def _mean(values: list[float]) -> float:
     return float(np.mean(values)) if values else math.nan
+
+
+def _standard_error(values: list[float]) -> float:
+    return float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else math.nan
 
 
 @dataclass(frozen=True)
@@ -55,6 +63,9 @@ class EstimatorSummary:
     runs: int  # runs with a finite ATE
     mean_ate_m: float
     mean_frame_ms: float  # mean over the runs of their median time per frame
+    mean_final_height_error_m: float = math.nan  # signed: a drift one way shows here
+    final_height_error_se_m: float = math.nan  # its standard error over the runs
+    mean_dem_rmse_m: float = math.nan  # over the runs with a DEM
 
 
 @dataclass
@@ -64,9 +75,11 @@ class StudyResult:
     frames: int | None  # camera frames per run at most (None: all)
 
     def table(self) -> str:
-        headers = ["estimator", "seed", "speed (m/s)", "cap n", "ATE (m)", "ATE aligned (m)", "drift (%)", "frame ms (median)", "frame ms (p95)", "live", "status"]
+        headers = ["estimator", "seed", "speed (m/s)", "cap n", "ATE (m)", "ATE aligned (m)", "drift (%)", "end height error (m)", "DEM RMSE (cm)", "matched",
+                   "frame ms (median)", "frame ms (p95)", "live", "status"]
         rows = [
             [r.estimator, r.seed, f"{r.speed_mps:g}", r.max_points, f"{r.ate_m:.3f}", f"{r.ate_aligned_m:.3f}", f"{r.drift_percent:.2f}",
+             f"{r.final_height_error_m:+.3f}", f"{100 * r.dem_rmse_m:.1f}", f"{r.matched_fraction:.2f}",
              f"{r.frame_ms_median:.1f}", f"{r.frame_ms_p95:.1f}", f"{r.live_points:.0f}", r.status]
             for r in self.rows
         ]
@@ -78,7 +91,13 @@ class StudyResult:
         out = []
         for name in dict.fromkeys(r.estimator for r in self.rows):
             ok = [r for r in self.rows if r.estimator == name and math.isfinite(r.ate_m)]
-            out.append(EstimatorSummary(name, len(ok), _mean([r.ate_m for r in ok]), _mean([r.frame_ms_median for r in ok])))
+            dz = [r.final_height_error_m for r in ok if math.isfinite(r.final_height_error_m)]
+            dem = [r.dem_rmse_m for r in ok if math.isfinite(r.dem_rmse_m)]
+            out.append(
+                EstimatorSummary(
+                    name, len(ok), _mean([r.ate_m for r in ok]), _mean([r.frame_ms_median for r in ok]), _mean(dz), _standard_error(dz), _mean(dem)
+                )
+            )
         return out
 
     def conclusion(self) -> str:
@@ -104,6 +123,14 @@ class StudyResult:
         others = ", ".join(f"{s.estimator} {s.mean_ate_m:.3f} m at {s.mean_frame_ms:.1f} ms" for s in summary if s is not best)
         if others:
             text += f" Others: {others}."
+        heights = [s for s in summary if math.isfinite(s.mean_final_height_error_m)]
+        if heights:
+            text += " Height error at the end, mean +- standard error: " + ", ".join(
+                f"{s.estimator} {s.mean_final_height_error_m:+.3f} +- {s.final_height_error_se_m:.3f} m" for s in heights
+            ) + "."
+        dems = [s for s in summary if math.isfinite(s.mean_dem_rmse_m)]
+        if dems:
+            text += " Mean DEM RMSE over the laser cells: " + ", ".join(f"{s.estimator} {100 * s.mean_dem_rmse_m:.1f} cm" for s in dems) + "."
         failed = sum(r.status != "ok" for r in self.rows)
         if failed:
             text += f" {failed} run(s) failed or stopped early."
@@ -122,19 +149,45 @@ class StudyResult:
         return path
 
 
-def _run_row(sequence, name: str, seed: int, speed_mps: float, max_points: int, max_frames: int | None) -> StudyRow:
-    config = config_for_points(name, max_points, sequence.rig, speed_mps)
+GRAPH_PROCESS = "isam2-process"  # a study's name for isam2 with its graph in a second process
+
+
+def parse_study_estimators(text: str) -> tuple[str, ...]:
+    """The study's estimators from ``"gm,isam2"``: those ``compare`` knows, and ``isam2-process``."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    others = [n for n in names if n != GRAPH_PROCESS]
+    known = parse_estimators(others) if others else ()
+    return tuple(dict.fromkeys(n for n in names if n == GRAPH_PROCESS or n in known))
+
+
+def _study_config(sequence, name: str, speed_mps: float, max_points: int | None) -> RunConfig:
+    """The run's configuration: ``dem-graph run``'s defaults for the dataset when ``max_points`` is
+    None, else the bench's for that cap (:func:`config_for_points`)."""
+    if max_points is not None:
+        return config_for_points(name, max_points, sequence.rig, speed_mps)
+    config = run_config(sequence).model_copy(update={"estimator": "isam2" if name == GRAPH_PROCESS else name}, deep=True)
+    config.isam2.graph_process = name == GRAPH_PROCESS
+    return config
+
+
+def _run_row(sequence, name: str, seed: int, speed_mps: float, max_points: int | None, max_frames: int | None, realtime: bool = False) -> StudyRow:
+    config = _study_config(sequence, name, speed_mps, max_points)
     config.max_frames = max_frames
+    config.realtime = realtime
+    cap = config.frontend.max_points
     nan = math.nan
     try:
-        run = run_estimator(sequence, config, with_dem=False)
+        run = run_estimator(sequence, config)
     except DemGraphError as exc:
-        return StudyRow(name, seed, speed_mps, max_points, nan, nan, nan, nan, nan, nan, f"failed: {one_line(exc)}")
+        return StudyRow(name, seed, speed_mps, cap, nan, nan, nan, nan, nan, nan, f"failed: {one_line(exc)}")
     h = headline(run.metrics)
     status = "ok" if run.error is None else f"stopped: {one_line(run.error)}"
+    tracking = run.metrics.tracking
     return StudyRow(
-        name, seed, speed_mps, max_points, h["ate_anchored_rmse_m"], h["ate_aligned_rmse_m"], h["drift_percent"],
+        name, seed, speed_mps, cap, h["ate_anchored_rmse_m"], h["ate_aligned_rmse_m"], h["drift_percent"],
         h["time_per_frame_median_ms"], h["time_per_frame_p95_ms"], h["points_per_frame"], status,
+        final_height_error_m=h["final_height_error_m"], dem_rmse_m=h["dem_rmse_laser_cells_m"],
+        matched_fraction=nan if tracking is None else tracking.matched_fraction,
     )
 
 
@@ -144,9 +197,11 @@ def simulate_job(scenario_name: str, seed: int, speed_mps: float, length_m: floa
     return {"folder": folder}
 
 
-def run_job(folder: str, name: str, seed: int, speed_mps: float, max_points: int, max_frames: int | None) -> dict:
-    """One run of the study on the dataset in ``folder``, as a :class:`StudyRow`'s fields (a grid job)."""
-    return asdict(_run_row(FolderSequence(folder), name, seed, speed_mps, max_points, max_frames))
+def run_job(folder: str, name: str, seed: int, speed_mps: float, max_points: int | None, max_frames: int | None, realtime: bool = False) -> dict:
+    """One run of the study on the dataset in ``folder``, as a :class:`StudyRow`'s fields (a grid job);
+    ``max_points`` None: ``dem-graph run``'s default settings; ``realtime``: the events at the camera's
+    rate, as on the vehicle."""
+    return asdict(_run_row(FolderSequence(folder), name, seed, speed_mps, max_points, max_frames, realtime))
 
 
 def _dataset_name(scenario_name: str, seed: int, speed_mps: float, length_m: float | None) -> str:
@@ -158,15 +213,18 @@ def estimator_study(
     scenario_name: str = "paper",
     seeds=(1, 2),
     speeds_mps=(1.5, 2.0, 5.0),
-    point_budgets=(140,),
+    point_budgets=(None,),
     estimators=ESTIMATORS,
     max_frames: int | None = None,
     length_m: float | None = None,
     scheduler: str = LOCAL,
     n_workers: int | None = None,
+    realtime: bool = False,
 ) -> StudyResult:
     """Every estimator with every point budget on the scenario simulated for every seed and speed
-    (``length_m`` shortens the drive), as a grid of jobs (:func:`~dem_graph.studies.grid.run_grid`):
+    (``length_m`` shortens the drive; a budget None runs ``dem-graph run``'s default settings, a
+    number the bench's for that cap; ``realtime`` gives each run its events at the camera's rate,
+    which is fair only with a core per run), as a grid of jobs (:func:`~dem_graph.studies.grid.run_grid`):
     ``scheduler`` ``"local"`` (default) on a local Dask cluster, ``"serial"`` in this process, or the
     address of a Dask scheduler. Datasets go to ``data_dir/<scenario>_seed<S>_<V>mps[_<L>m]`` and each
     result to ``data_dir/study_results/``; a study started again keeps what is done there and runs
@@ -184,11 +242,13 @@ def estimator_study(
         sim_key = sim_keys[(seed, speed)]
         for name in estimators:
             for n in point_budgets:
-                key = f"run_{Path(folder).name}_{name}_n{int(n)}" + ("" if max_frames is None else f"_f{max_frames}")
-                where[key] = (name, seed, speed, int(n))
+                n = None if n is None else int(n)
+                cap = "default" if n is None else f"n{n}"
+                key = f"run_{Path(folder).name}_{name}_{cap}" + ("" if max_frames is None else f"_f{max_frames}") + ("_realtime" if realtime else "")
+                where[key] = (name, seed, speed, n)
                 if isinstance(simulated[sim_key], JobFailure):
                     continue
-                jobs.append(GridJob(key, run_job, (folder, name, seed, speed, int(n), max_frames)))
+                jobs.append(GridJob(key, run_job, (folder, name, seed, speed, n, max_frames, realtime)))
     done = run_grid(jobs, results_dir, scheduler, n_workers, desc="runs")
     rows = []
     nan = math.nan
@@ -198,8 +258,8 @@ def estimator_study(
             rows.append(StudyRow(**result))
         else:
             why = result.error if isinstance(result, JobFailure) else f"its dataset could not be simulated: {simulated[sim_keys[(seed, speed)]].error}"
-            rows.append(StudyRow(name, seed, speed, n, nan, nan, nan, nan, nan, nan, f"failed: {why}"))
+            rows.append(StudyRow(name, seed, speed, -1 if n is None else n, nan, nan, nan, nan, nan, nan, f"failed: {why}"))
     return StudyResult(rows, scenario_name, max_frames)
 
 
-__all__ = ["EstimatorSummary", "StudyResult", "StudyRow", "estimator_study", "run_job", "simulate_job"]
+__all__ = ["GRAPH_PROCESS", "EstimatorSummary", "StudyResult", "StudyRow", "estimator_study", "parse_study_estimators", "run_job", "simulate_job"]
