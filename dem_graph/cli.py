@@ -98,6 +98,12 @@ _DATASET_OPTIONS = (
     click.option("--sequence", default=None, help="KITTI odometry: the sequence number, when the folder holds several."),
     click.option("--ring", type=click.IntRange(0, 63), default=None, help="KITTI: the Velodyne ring used as the line laser (0 highest, 63 lowest) [default: the one hitting the road about 10 m ahead]."),
     click.option("--camera", type=click.IntRange(0, 3), default=None, help="KITTI raw: the camera (0, 1 grey; 2, 3 colour, read as grey) [default: the first the drive holds]."),
+    click.option(
+        "--truth",
+        type=click.Choice(["positions", "velocities"]),
+        default=None,
+        help="KITTI raw: the true trajectory from the OXTS GPS positions (the development kit's) or from its velocities integrated (steadier over a short drive) [default: positions].",
+    ),
     click.option("--rig", type=click.Path(dir_okay=False, path_type=Path), default=None, help="ROS bag: the rig YAML."),
     click.option("--image-topic", default=None, help="ROS bag: sensor_msgs Image or CompressedImage topic."),
     click.option("--scan-topic", default=None, help="ROS bag: sensor_msgs LaserScan topic."),
@@ -106,7 +112,7 @@ _DATASET_OPTIONS = (
     click.option("--camera-frame", default=None, help="ROS bag: camera frame in tf_static."),
     click.option("--laser-frame", default=None, help="ROS bag: laser frame in tf_static."),
 )
-_DATASET_KEYS = ("sequence", "ring", "camera", "rig", "image_topic", "scan_topic", "odometry_topic", "body_frame", "camera_frame", "laser_frame")
+_DATASET_KEYS = ("sequence", "ring", "camera", "truth", "rig", "image_topic", "scan_topic", "odometry_topic", "body_frame", "camera_frame", "laser_frame")
 
 
 def _dataset_options(fn):

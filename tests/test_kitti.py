@@ -194,16 +194,26 @@ def circle_path(t_s, speed=10.0, yaw_rate=0.2):
     rows[:, 0], rows[:, 1], rows[:, 2] = lat, lon, 100.0
     rows[:, 5] = yaw
     rows[:, 8] = speed  # vf
+    rows[:, 6], rows[:, 7] = speed * np.sin(yaw), speed * np.cos(yaw)  # vn, ve
     rows[:, 22] = yaw_rate  # wu
     rows[:, 23:30] = [0.1, 0.1, 4, 10, 5, 5, 6]
     poses = make_pose(rotation_from_rpy(0.0, 0.0, yaw), np.stack([x, y, np.zeros_like(x)], axis=1))
     return rows, poses
 
 
-def make_raw_drive(root, n=11, oxts_stamps=None):
+def make_raw_drive(root, n=11, oxts_stamps=None, gps_heading_error_deg: float = 0.0):
+    """A raw drive on :func:`circle_path`; ``gps_heading_error_deg`` turns the GPS positions (only
+    them) about the first one, as a GPS track that runs off the vehicle's direction of travel does."""
     drive = root / "2011_09_26" / "2011_09_26_drive_0001_sync"
     t = 0.1 * np.arange(n)
     rows, poses = circle_path(t)
+    if gps_heading_error_deg:
+        a = math.radians(gps_heading_error_deg)
+        xy = poses[:, :2, 3] @ np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])  # each row turned by a
+        scale = math.cos(math.radians(LAT0))
+        my0 = scale * R_EARTH * math.log(math.tan(math.radians(90 + LAT0) / 2))
+        rows[:, 1] = np.degrees(xy[:, 0] / (scale * R_EARTH))
+        rows[:, 0] = np.degrees(2 * np.arctan(np.exp((my0 + xy[:, 1]) / (scale * R_EARTH)))) - 90.0
     rng = np.random.default_rng(4)
     for i in range(n):
         _write_png(drive / "image_00/data" / f"{i:010d}.png", rng.integers(0, 256, (180, 600), dtype=np.uint8))
@@ -248,6 +258,21 @@ def test_raw_layout_oxts_truth_and_odometry(tmp_path):
     assert times == sorted(times) and times[0] >= seq.t_start_s
     frames = [e for e in events if isinstance(e, CameraFrame)]
     assert frames[0].t_s == pytest.approx(0.004, abs=1e-9)
+
+
+def test_raw_truth_from_the_velocities_keeps_the_direction_of_travel_when_the_gps_track_runs_off(tmp_path):
+    drive, T_world_imu, T_velo_imu = make_raw_drive(tmp_path, n=31, gps_heading_error_deg=1.0)  # 3 s, 30 m of a circle
+    T_body_imu = make_pose(np.eye(3), [0, 0, LIDAR_H]) @ T_velo_imu
+    expected = T_world_imu @ invert(T_body_imu)
+    by_gps = open_kitti(drive).ground_truth.trajectory.poses_se3
+    by_velocity = open_kitti(drive, truth="velocities").ground_truth.trajectory.poses_se3
+    # the GPS track is turned by 1 degree: 30 m on, its end is about 0.5 m away from the vehicle's
+    assert np.linalg.norm(by_gps[-1, :3, 3] - expected[-1, :3, 3]) == pytest.approx(math.radians(1.0) * np.linalg.norm(T_world_imu[-1, :2, 3]), rel=0.02)
+    # the velocities integrate (trapezoid, 0.1 s steps) to the circle within 2 cm over 30 m; the attitude is the OXTS's in both
+    np.testing.assert_allclose(by_velocity[:, :3, 3], expected[:, :3, 3], atol=0.02)
+    np.testing.assert_allclose(by_velocity[:, :3, :3], by_gps[:, :3, :3], atol=1e-12)
+    with pytest.raises(DatasetError, match=r"unknown truth 'imu': a raw drive's trajectory is built from positions or velocities"):
+        open_kitti(drive, truth="imu")
 
 
 def test_oxts_mercator_origin_is_zero():

@@ -102,3 +102,46 @@ def test_raw_drive_0013_runs_on_its_colour_camera(kitti_raw_drive):
     config = run_config(seq, overrides=RunOverrides(estimator="ptpm"))
     run = run_estimator(seq, config, with_dem=False)
     assert run.error is None and run.metrics.trajectory.drift_percent < 3.5
+
+
+def _heading_in_body_deg(T_rel: np.ndarray) -> np.ndarray:
+    """The direction of travel of relative poses (N,4,4) in the body frame, degrees left of its x axis."""
+    return np.degrees(np.arctan2(T_rel[:, 1, 3], T_rel[:, 0, 3]))
+
+
+def test_drive_0013_gps_track_runs_a_degree_off_the_direction_the_velodyne_and_the_oxts_velocities_agree_on(kitti_raw_drive):
+    """Drive 0013's OXTS GPS positions (the development kit's truth) run about a degree right of the
+    direction of travel that the Velodyne's consecutive scans, registered, and the OXTS's own
+    velocities both give (measured over scans 0-45, every third, degrees left of the body's x axis:
+    Velodyne +0.36 with a spread of 0.18 between pairs, velocities +0.16, positions -1.23). That
+    degree is 1.2 m across the 53 m: most of the 2.4 % drift of isam2 measured against the
+    positions, which the OXTS velocities, integrated without any camera, also show (2.5 %).
+    ``--truth velocities`` is the reference that resolves drift on this drive: against it isam2
+    without odometry drifts 0.22 % (asserted below 2 %, issue 23's bound)."""
+    from dem_graph.datasets.kitti import open_kitti
+    from dem_graph.datasets.velodyne import register_scans
+    from dem_graph.geometry.se3 import invert
+
+    by_gps = open_kitti(kitti_raw_drive)
+    by_velocity = open_kitti(kitti_raw_drive, truth="velocities")
+    pairs = list(range(0, 46, 3))
+    lidar = []
+    for i in pairs:
+        T_to_from, used = register_scans(by_gps.read_scan(i + 1)[0][:, :3], by_gps.read_scan(i)[0][:, :3])
+        assert used > 1000
+        lidar.append(T_to_from)
+    velodyne = float(np.mean(_heading_in_body_deg(np.array(lidar))))  # the body frame is the lidar's, lowered
+    t_scan, _ = by_gps.laser_scans()
+    headings = {}
+    for name, seq in (("positions", by_gps), ("velocities", by_velocity)):
+        T = seq.ground_truth.trajectory.at(t_scan)
+        T_rel = np.array([invert(T[i]) @ T[i + 1] for i in pairs])
+        headings[name] = float(np.mean(_heading_in_body_deg(T_rel)))
+    assert abs(headings["velocities"] - velodyne) < 0.3
+    assert velodyne - headings["positions"] > 1.0
+
+    from dem_graph.pipeline import RunOverrides, run_config
+    from dem_graph.pipeline.run import run_estimator
+
+    run = run_estimator(by_velocity, run_config(by_velocity, overrides=RunOverrides(estimator="isam2", no_odometry=True)), with_dem=False)
+    assert run.error is None and run.metrics.trajectory.drift_percent < 2.0

@@ -19,6 +19,7 @@ class DatasetOptions:
     sequence: str | None = None  # KITTI odometry: the sequence number when ROOT holds several
     ring: int | None = None  # KITTI: the Velodyne ring used as the line laser (default: the one hitting the road ~10 m ahead)
     camera: int | None = None  # KITTI raw: the camera, 0-3 (default: the first the drive holds)
+    truth: str | None = None  # KITTI raw: the true trajectory from the OXTS "positions" (default) or "velocities"
     rig: Path | None = None  # rosbag: the rig YAML
     image_topic: str | None = None  # rosbag
     scan_topic: str | None = None  # rosbag
@@ -33,7 +34,7 @@ _ROSBAG_ONLY = ("rig", "image_topic", "scan_topic", "odometry_topic", "body_fram
 USED_OPTIONS: dict[str, tuple[str, ...]] = {  # the DatasetOptions each format reads
     "folder": ("input_checks",),
     "kitti-odometry": ("sequence", "ring"),
-    "kitti-raw": ("ring", "camera"),
+    "kitti-raw": ("ring", "camera", "truth"),
     "rosbag": (*_ROSBAG_ONLY, "input_checks"),
 }
 
@@ -83,7 +84,7 @@ def open_dataset(path: str | Path, format: str | None = None, options: DatasetOp
     if fmt in ("kitti-odometry", "kitti-raw"):
         from dem_graph.datasets.kitti import open_kitti
 
-        return open_kitti(path, fmt, options.sequence, options.ring, camera=options.camera)
+        return open_kitti(path, fmt, options.sequence, options.ring, camera=options.camera, truth=options.truth)
     if fmt == "rosbag":
         from dem_graph.datasets.rosbag import RosbagSequence
         from dem_graph.geometry.rig import load_rig
