@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from threadpoolctl import threadpool_limits
@@ -102,12 +102,15 @@ def run_estimator(
     with_dem: bool = True,
     viewer: ViewerOptions | None = None,
     checkpoint_dir: str | Path | None = None,
+    instrument: Callable[[LivePipeline], object] | None = None,
 ) -> RunResult:
     """Run ``config``'s estimator over ``sequence`` in a :class:`LivePipeline` (the live map built as
     the events come, measured against the truth as the guidance had it), then make the run's
     metrics and its DEM from the final poses. ``viewer``: show it in rerun as it goes, or record it.
     ``checkpoint_dir``: the run folder, where the trajectory and map points so far are kept current
-    every ``config.checkpoint_every_s`` (:mod:`~dem_graph.pipeline.checkpoint`).
+    every ``config.checkpoint_every_s`` (:mod:`~dem_graph.pipeline.checkpoint`). ``instrument``: called
+    with the pipeline before the first event, for studies that change what a part sees
+    (:class:`~dem_graph.studies.ablation.TrueTracks`).
 
     Ctrl-C, SIGTERM (main thread) or an error part way stops the loop, not the run: what was
     estimated up to there is returned with ``error`` saying why, and its metrics and DEM are made.
@@ -117,6 +120,8 @@ def run_estimator(
     as ``dem-graph run`` would without options."""
     config = with_dataset_speed(sequence, config or run_config(sequence))
     pipeline = LivePipeline.for_sequence(sequence, config, strict_order=True)
+    if instrument is not None:
+        instrument(pipeline)
     live = LiveRun.attach(pipeline, sequence.ground_truth, config.local_error)
     shown = ViewerListener(pipeline, viewer, sequence.ground_truth) if viewer is not None else None
     if shown is not None:
