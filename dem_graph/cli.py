@@ -390,6 +390,34 @@ def bench_dem_command(dataset, run_dir, n_points, repeats) -> None:
     click.echo(bench_dem(sequence, poses, n_points=n_points, repeats=repeats).table())
 
 
+@main.command()
+@click.argument("datasets", nargs=-1, required=True, type=click.Path(file_okay=False, path_type=Path))
+@click.option("--estimator", default="isam2-batch", show_default=True, help="The estimator run in every condition.")
+@click.option(
+    "--conditions",
+    default="none;tracks;laser;odometry",
+    show_default=True,
+    help="Sets of ingredients replaced by their truth, ';'-separated, each a ','-list of tracks, laser, odometry (none: the dataset as it is).",
+)
+@click.option("--sigma-px", type=click.FloatRange(0.0, None), default=0.2, show_default=True, help="White noise on the true tracks, pixels.")
+@click.option("--work", "work_dir", type=click.Path(file_okay=False, path_type=Path), default=None, help="Folder for the datasets with true streams and the kept results [default: beside the first dataset].")
+@click.option("--scheduler", default="local", show_default=True, help="local (a Dask cluster here), serial, or a scheduler's address.")
+@click.option("--workers", "n_workers", type=click.IntRange(1, None), default=None, help="local: worker processes [default: one per core].")
+@click.option("--out", "csv_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="The rows as CSV [default: WORK/ablation.csv].")
+@_friendly_errors
+def ablate(datasets, estimator, conditions, sigma_px, work_dir, scheduler, n_workers, csv_path) -> None:
+    """Which input makes the drift: the estimator on simulated DATASETS with tracks, laser or
+    odometry replaced by their truth; prints each run's signed end height and pitch errors, ATE and
+    DEM error, and per condition the mean height error with its standard error."""
+    from dem_graph.studies.ablation import ablation_study, parse_ingredients
+
+    parsed = [parse_ingredients(c) for c in conditions.split(";")]
+    result = ablation_study(datasets, estimator, parsed, sigma_px, work_dir, scheduler, n_workers)
+    click.echo(result.table())
+    path = result.write_csv(csv_path or Path(work_dir or Path(datasets[0]).parent) / "ablation.csv")
+    click.echo(f"rows: {path}")
+
+
 @main.command("track-noise")
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--frames", "max_frames", type=int, default=None, help="Camera frames to track [default: all].")

@@ -18,9 +18,10 @@ the drift goes one way, and the ATE and DEM error it makes (:func:`ablation_row`
 
 from __future__ import annotations
 
+import csv
 import math
 import os
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from dem_graph.datasets.folder import LASER_NPZ, ODOMETRY_NPZ, FolderSequence
 from dem_graph.errors import DatasetError, DemGraphError
+from dem_graph.evaluation.timing import format_table
 from dem_graph.frontend.tracker import TrackStatus
 from dem_graph.geometry.se3 import invert
 from dem_graph.pipeline.config import run_config
@@ -36,6 +38,7 @@ from dem_graph.pipeline.run import run_estimator
 from dem_graph.sim.config import ScenarioConfig
 from dem_graph.sim.pipeline import SCENARIO_YAML
 from dem_graph.sim.simulator import SimulatedSequence
+from dem_graph.studies.grid import LOCAL, GridJob, JobFailure, run_grid
 from dem_graph.studies.headline import headline
 
 INGREDIENTS = ("tracks", "laser", "odometry")
@@ -215,4 +218,97 @@ def ablation_row(folder: str | Path, estimator: str, ingredients=(), sigma_px: f
     )
 
 
-__all__ = ["DATASET_INGREDIENTS", "INGREDIENTS", "AblationRow", "TrueTracks", "ablation_row", "parse_ingredients", "truth_dataset"]
+def ablation_job(folder: str, estimator: str, ingredients: list[str], sigma_px: float, work_dir: str) -> dict:
+    """:func:`ablation_row` as a grid job (its fields as a dict)."""
+    return asdict(ablation_row(folder, estimator, tuple(ingredients), sigma_px, work_dir))
+
+
+@dataclass
+class AblationResult:
+    rows: list[AblationRow]
+
+    def summary(self) -> list[tuple[str, int, float, float, float, float]]:
+        """Per set of ingredients (in the order they ran): runs, mean signed end height error, its
+        standard error, mean end pitch error, mean DEM RMSE."""
+        out = []
+        for label in dict.fromkeys(r.ingredients for r in self.rows):
+            ok = [r for r in self.rows if r.ingredients == label and math.isfinite(r.final_height_error_m)]
+            dz = np.array([r.final_height_error_m for r in ok])
+            se = float(dz.std(ddof=1) / np.sqrt(len(dz))) if len(dz) > 1 else math.nan
+            pitch = [r.final_pitch_error_deg for r in ok]
+            dem = [r.dem_rmse_m for r in ok if math.isfinite(r.dem_rmse_m)]
+            out.append(
+                (
+                    label, len(ok), float(dz.mean()) if len(dz) else math.nan, se,
+                    float(np.mean(pitch)) if pitch else math.nan, float(np.mean(dem)) if dem else math.nan,
+                )
+            )
+        return out
+
+    def table(self) -> str:
+        rows = [
+            [r.dataset, r.estimator, r.ingredients, f"{r.sigma_px:g}", f"{r.final_height_error_m:+.3f}", f"{r.final_pitch_error_deg:+.2f}", f"{r.ate_m:.3f}", f"{100 * r.dem_rmse_m:.1f}", r.status]
+            for r in self.rows
+        ]
+        headers = ["dataset", "estimator", "true ingredients", "sigma px", "end height error (m)", "end pitch error (deg)", "ATE (m)", "DEM RMSE (cm)", "status"]
+        lines = [format_table(headers, rows, title="ablation: ingredients replaced by their truth")]
+        for label, n, dz, se, pitch, dem in self.summary():
+            t = dz / se if se > 0 else math.nan
+            lines.append(f"{label}: {n} runs, end height error {dz:+.3f} +- {se:.3f} m (mean, standard error; {t:+.1f} standard errors from 0), pitch {pitch:+.2f} deg, DEM {100 * dem:.1f} cm")
+        return "\n".join(lines)
+
+    def write_csv(self, path: str | Path) -> Path:
+        path = Path(path)
+        try:
+            with path.open("w", newline="") as f:
+                writer = csv.writer(f)
+                writer.writerow([f.name for f in fields(AblationRow)])
+                writer.writerows(list(asdict(r).values()) for r in self.rows)
+        except OSError as exc:
+            raise DatasetError(path, f"cannot write ({exc.strerror or exc})") from None
+        return path
+
+
+def ablation_study(
+    folders, estimator: str = "isam2-batch", conditions=((), ("tracks",), ("laser",), ("odometry",)), sigma_px: float = 0.2,
+    work_dir: str | Path | None = None, scheduler: str = LOCAL, n_workers: int | None = None,
+) -> AblationResult:
+    """Every condition (a set of ingredients replaced by their truth; () is the dataset as it is) on
+    every simulated dataset folder, as a grid (:func:`~dem_graph.studies.grid.run_grid`, kept and
+    resumed in ``work_dir/ablation_results``; the datasets with true laser or odometry go to
+    ``work_dir``, default the first folder's parent)."""
+    folders = [Path(f) for f in folders]
+    if not folders:
+        raise DemGraphError("an ablation needs at least one simulated dataset folder")
+    work_dir = Path(work_dir or folders[0].parent)
+    jobs, where = [], {}
+    for folder in folders:
+        for condition in conditions:
+            ingredients = [i for i in INGREDIENTS if i in condition]
+            label = "_".join(ingredients) or "none"
+            key = f"ablation_{folder.name}_{estimator}_{label}" + (f"_{sigma_px:g}px" if "tracks" in ingredients else "")
+            where[key] = (folder.name, ",".join(ingredients) or "none", sigma_px if "tracks" in ingredients else math.nan)
+            jobs.append(GridJob(key, ablation_job, (str(folder), estimator, ingredients, float(sigma_px), str(work_dir))))
+    done = run_grid(jobs, work_dir / "ablation_results", scheduler, n_workers, desc="ablation")
+    rows = []
+    for key, (name, label, sigma) in where.items():
+        result = done[key]
+        if isinstance(result, JobFailure):
+            rows.append(AblationRow(name, estimator, label, sigma, math.nan, math.nan, math.nan, math.nan, f"failed: {result.error}"))
+        else:
+            rows.append(AblationRow(**result))
+    return AblationResult(rows)
+
+
+__all__ = [
+    "DATASET_INGREDIENTS",
+    "INGREDIENTS",
+    "AblationResult",
+    "AblationRow",
+    "TrueTracks",
+    "ablation_job",
+    "ablation_row",
+    "ablation_study",
+    "parse_ingredients",
+    "truth_dataset",
+]
