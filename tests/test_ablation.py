@@ -88,3 +88,34 @@ def test_an_ablation_study_runs_its_conditions_as_a_grid_and_summarises_them(smo
     summary = {label: (n, dz) for label, n, dz, *_ in result.summary()}
     assert summary["none"] == (1, pytest.approx(as_is.final_height_error_m))
     assert "tracks,laser,odometry: 1 runs, end height error" in result.table()
+
+
+def test_camera_points_guessed_on_the_body_plane_tilt_the_pose_from_perfect_inputs(smoke_folder, tmp_path):
+    """A new camera point's range is guessed from its seeding pose. On `smoke` the ground at the focus
+    cells lies 7 cm off the body's ground plane on average, and with every other input true PTPM ends
+    2.0 mm high and 0.037 degree pitched (measured); guessed on the plane through the live points
+    (``camera_point_ground: live_points``) it ends within 0.2 mm and 0.001 degree (isam2 and
+    isam2-batch measured alike). On `paper` the same change does not remove the upward drift
+    (docs/isam2_design.md): the default stays the body's plane."""
+    rows = {
+        ground: ablation_row(smoke_folder, "ptpm", ("tracks", "laser", "odometry"), 0.0, tmp_path, {"frontend": {"camera_point_ground": ground}})
+        for ground in ("flat", "live_points")
+    }
+    assert rows["flat"].final_height_error_m > 0.0015 and rows["flat"].final_pitch_error_deg > 0.025
+    assert abs(rows["live_points"].final_height_error_m) < 0.0005 and abs(rows["live_points"].final_pitch_error_deg) < 0.005
+
+
+def test_the_ground_plane_through_live_points_is_fitted_without_its_outliers():
+    from dem_graph.frontend.focus import FocusArea
+    from dem_graph.frontend.frontend import ground_plane_through
+
+    focus = FocusArea(2.7, 4.6, 1.5, 0.3)
+    rng = np.random.default_rng(0)
+    xy = np.column_stack([rng.uniform(2.0, 5.0, 60), rng.uniform(-1.5, 1.5, 60)])
+    z = 0.03 + 0.02 * xy[:, 0] - 0.01 * xy[:, 1] + rng.normal(0.0, 0.005, 60)
+    z[:5] += 0.3  # stones
+    plane = ground_plane_through(np.column_stack([xy, z]), focus)
+    np.testing.assert_allclose(plane, [0.03, 0.02, -0.01], atol=0.006)
+    assert ground_plane_through(np.column_stack([xy[:11], z[:11]]), focus) is None  # too few points: the body's plane is used
+    far = np.column_stack([xy + [20.0, 0.0], z])
+    assert ground_plane_through(far, focus) is None  # none near the focus area

@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 from enum import IntEnum
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -50,7 +51,12 @@ class FrontendConfig(StrictModel):
     min_separation_px: float = Field(8.0, ge=0, description="a new point keeps this distance from live points, pixels")
     image_margin_px: int = Field(12, ge=0, description="points closer than this to the image border are dropped, pixels")
     max_misses: int = Field(3, ge=1, description="a point that fails tracking this many frames in a row is dropped")
-    camera_point_sigma_height_m: float = Field(0.5, gt=0, description="height uncertainty of a new camera point (flat-ground guess), metres")
+    camera_point_sigma_height_m: float = Field(0.5, gt=0, description="height uncertainty of a new camera point (ground guess), metres")
+    camera_point_ground: Literal["live_points", "flat"] = Field(
+        "flat",
+        description="where a new camera point is guessed: on the plane through the live points around the focus area (the body's ground plane "
+        "while there are too few), or always on the body's ground plane (flat: biased wherever the ground ahead is not, docs/isam2_design.md)",
+    )
     camera_point_sigma_px: float = Field(1.0, gt=0, description="across-ray uncertainty of a new camera point, pixels")
     interpolation_sigma_m: float = Field(0.002, ge=0, description="uncertainty added by interpolating the pose at a scan's time, metres")
     warp_patches: bool = Field(True, description="warp patches by the ground-plane homography between the two views")
@@ -130,6 +136,41 @@ class TrackedView:
         if not self.parts:
             return {"kind": np.zeros(0, dtype=np.uint8), **{k: np.zeros((0, 2)) for k in names[1:]}}
         return {k: np.concatenate([p[i] for p in self.parts]) for i, k in enumerate(names)}
+
+
+GROUND_MIN_POINTS = 12  # live points a ground plane is fitted to, at least
+GROUND_MIN_EXTENT_M = 0.5  # their spread along and across the body, at least, metres
+
+
+def ground_plane_through(points_body: np.ndarray, focus: FocusArea) -> np.ndarray | None:
+    """``(a, b, c)`` of the ground ``z = a + b x + c y`` (body frame, metres) through the live points
+    ``points_body`` (N,3) within a metre of the focus area, fitted by least squares, refitted once
+    without the points more than 3 robust sigmas off (stones, a wrong point); None when fewer than
+    :data:`GROUND_MIN_POINTS` remain or they do not spread :data:`GROUND_MIN_EXTENT_M` along and across.
+
+    A new camera point's depth along its ray is a guess until parallax measures it. Guessed on the
+    body's own ground plane, it is biased wherever the ground ahead is not on that plane (on
+    `paper` the ground at the focus cells lies 2-3 cm above it on average: the wheels run in ruts),
+    and the guess is a range from the seeding pose: every camera point then pushes its pose away
+    from the ground, up. The plane through the points the estimator already has carries no such
+    offset."""
+    p = np.asarray(points_body, dtype=float).reshape(-1, 3)
+    near = (
+        (p[:, 0] > focus.x_near_m - 1.0) & (p[:, 0] < focus.x_far_m + 1.0) & (np.abs(p[:, 1]) < focus.half_width_m + 1.0) & np.isfinite(p).all(axis=1)
+    )
+    p = p[near]
+    for _ in range(2):
+        if len(p) < GROUND_MIN_POINTS or np.ptp(p[:, 0]) < GROUND_MIN_EXTENT_M or np.ptp(p[:, 1]) < GROUND_MIN_EXTENT_M:
+            return None
+        A = np.column_stack([np.ones(len(p)), p[:, 0], p[:, 1]])
+        coef, *_ = np.linalg.lstsq(A, p[:, 2], rcond=None)
+        residual = p[:, 2] - A @ coef
+        sigma = 1.4826 * np.median(np.abs(residual - np.median(residual)))
+        inliers = np.abs(residual) <= 3.0 * max(sigma, 1e-3)
+        if inliers.all():
+            break
+        p = p[inliers]
+    return coef
 
 
 @dataclass
@@ -334,11 +375,17 @@ class FrontEnd:
             yield k, point_id
 
     def new_camera_points(self, image, t_s, T_world_body, focus: FocusArea, live_points_body: np.ndarray, occupied_uv: np.ndarray) -> list[NewPoint]:
-        """Points at the empty focus cells, on the flat ground of the current body frame."""
+        """Points at the empty focus cells, on the ground the live points around them make
+        (:func:`ground_plane_through`), or on the body's ground plane (``camera_point_ground``)."""
         budget = self._budget(PointKind.CAMERA)
         if budget == 0:
             return []
         cells = focus.cell_centers_body()
+        if self.config.camera_point_ground == "live_points":
+            plane = ground_plane_through(live_points_body, focus)
+            if plane is not None:
+                cells[:, 2] = plane[0] + plane[1] * cells[:, 0] + plane[2] * cells[:, 1]
+            self.counters["camera_seed_on_live_plane" if plane is not None else "camera_seed_on_body_plane"] += 1
         taken = np.zeros(len(cells), dtype=bool)
         if len(live_points_body):
             idx = focus.cell_of(live_points_body)

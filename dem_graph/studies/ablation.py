@@ -33,7 +33,7 @@ from dem_graph.errors import DatasetError, DemGraphError
 from dem_graph.evaluation.timing import format_table
 from dem_graph.frontend.tracker import TrackStatus
 from dem_graph.geometry.se3 import invert
-from dem_graph.pipeline.config import run_config
+from dem_graph.pipeline.config import RunConfig, merge_settings, run_config
 from dem_graph.pipeline.run import run_estimator
 from dem_graph.sim.config import ScenarioConfig
 from dem_graph.sim.pipeline import SCENARIO_YAML
@@ -189,9 +189,12 @@ class AblationRow:
     status: str = "ok"
 
 
-def ablation_row(folder: str | Path, estimator: str, ingredients=(), sigma_px: float = 0.2, work_dir: str | Path | None = None) -> AblationRow:
+def ablation_row(
+    folder: str | Path, estimator: str, ingredients=(), sigma_px: float = 0.2, work_dir: str | Path | None = None, settings: dict | None = None
+) -> AblationRow:
     """One run of ``estimator`` on the simulated dataset ``folder`` with ``ingredients`` replaced by
-    their truth (the dataset ones written under ``work_dir``, default beside ``folder``)."""
+    their truth (the dataset ones written under ``work_dir``, default beside ``folder``);
+    ``settings``: run settings over the dataset's (as a ``--config`` file would give them)."""
     folder = Path(folder)
     ingredients = tuple(i for i in INGREDIENTS if i in ingredients)
     data = folder
@@ -201,6 +204,8 @@ def ablation_row(folder: str | Path, estimator: str, ingredients=(), sigma_px: f
         truth_dataset(folder, data, on_disk)
     sequence = FolderSequence(data)
     config = run_config(sequence).model_copy(update={"estimator": estimator}, deep=True)
+    if settings:
+        config = RunConfig.model_validate(merge_settings(config.model_dump(), settings))
     instrument = (lambda pipeline: TrueTracks(pipeline.estimator.frontend, sequence, sigma_px)) if "tracks" in ingredients else None
     run = run_estimator(sequence, config, instrument=instrument)
     est = run.estimator
