@@ -18,10 +18,9 @@ the drift goes one way, and the ATE and DEM error it makes (:func:`ablation_row`
 
 from __future__ import annotations
 
-import csv
 import math
 import os
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +39,7 @@ from dem_graph.sim.pipeline import SCENARIO_YAML
 from dem_graph.sim.simulator import SimulatedSequence
 from dem_graph.studies.grid import LOCAL, GridJob, JobFailure, run_grid
 from dem_graph.studies.headline import headline
+from dem_graph.studies.study import write_rows_csv
 
 INGREDIENTS = ("tracks", "laser", "odometry")
 DATASET_INGREDIENTS = ("laser", "odometry")  # those that make a dataset of their own
@@ -259,19 +259,12 @@ class AblationResult:
         lines = [format_table(headers, rows, title="ablation: ingredients replaced by their truth")]
         for label, n, dz, se, pitch, dem in self.summary():
             t = dz / se if se > 0 else math.nan
-            lines.append(f"{label}: {n} runs, end height error {dz:+.3f} +- {se:.3f} m (mean, standard error; {t:+.1f} standard errors from 0), pitch {pitch:+.2f} deg, DEM {100 * dem:.1f} cm")
+            spread = f" +- {se:.3f} m (mean, standard error; {t:+.1f} standard errors from 0)" if math.isfinite(se) else " m"
+            lines.append(f"{label}: {n} runs, end height error {dz:+.3f}{spread}, pitch {pitch:+.2f} deg, DEM {100 * dem:.1f} cm")
         return "\n".join(lines)
 
     def write_csv(self, path: str | Path) -> Path:
-        path = Path(path)
-        try:
-            with path.open("w", newline="") as f:
-                writer = csv.writer(f)
-                writer.writerow([f.name for f in fields(AblationRow)])
-                writer.writerows(list(asdict(r).values()) for r in self.rows)
-        except OSError as exc:
-            raise DatasetError(path, f"cannot write ({exc.strerror or exc})") from None
-        return path
+        return write_rows_csv(path, AblationRow, self.rows)
 
 
 def ablation_study(

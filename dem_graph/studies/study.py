@@ -137,16 +137,7 @@ class StudyResult:
         return text
 
     def write_csv(self, path: str | Path) -> Path:
-        path = Path(path)
-        try:
-            with path.open("w", newline="") as f:
-                writer = csv.writer(f)
-                writer.writerow([f.name for f in fields(StudyRow)])
-                for r in self.rows:
-                    writer.writerow(list(asdict(r).values()))
-        except OSError as exc:
-            raise DatasetError(path, f"cannot write ({exc.strerror or exc})") from None
-        return path
+        return write_rows_csv(path, StudyRow, self.rows)
 
 
 GRAPH_PROCESS = "isam2-process"  # a study's name for isam2 with its graph in a second process
@@ -168,6 +159,19 @@ def _study_config(sequence, name: str, speed_mps: float, max_points: int | None)
     config = run_config(sequence).model_copy(update={"estimator": "isam2" if name == GRAPH_PROCESS else name}, deep=True)
     config.isam2.graph_process = name == GRAPH_PROCESS
     return config
+
+
+def write_rows_csv(path: str | Path, row_type, rows) -> Path:
+    """``rows`` (dataclasses of ``row_type``) as CSV at ``path``, a header of the field names first."""
+    path = Path(path)
+    try:
+        with path.open("w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow([f.name for f in fields(row_type)])
+            writer.writerows(list(asdict(r).values()) for r in rows)
+    except OSError as exc:
+        raise DatasetError(path, f"cannot write ({exc.strerror or exc})") from None
+    return path
 
 
 def _run_row(sequence, name: str, seed: int, speed_mps: float, max_points: int | None, max_frames: int | None, realtime: bool = False) -> StudyRow:
@@ -262,4 +266,4 @@ def estimator_study(
     return StudyResult(rows, scenario_name, max_frames)
 
 
-__all__ = ["GRAPH_PROCESS", "EstimatorSummary", "StudyResult", "StudyRow", "estimator_study", "parse_study_estimators", "run_job", "simulate_job"]
+__all__ = ["GRAPH_PROCESS", "EstimatorSummary", "StudyResult", "StudyRow", "estimator_study", "parse_study_estimators", "run_job", "simulate_job", "write_rows_csv"]
