@@ -622,10 +622,9 @@ class KittiRawSequence(_KittiSequence):
         drive = Path(drive)
         if not drive.is_dir():
             raise DatasetError(drive, "drive folder not found")
-        truth = truth or RAW_TRUTHS[0]
-        if truth not in RAW_TRUTHS:
-            raise DatasetError(drive, f"unknown truth {truth!r}: a raw drive's trajectory is built from {' or '.join(RAW_TRUTHS)}")
-        self.truth = truth
+        self.truth = truth or RAW_TRUTHS[0]
+        if self.truth not in RAW_TRUTHS:
+            raise DatasetError(drive, f"unknown truth {self.truth!r}: a raw drive's trajectory is built from {' or '.join(RAW_TRUTHS)}")
         self.path = drive
         present = raw_cameras(drive)
         if not present:
@@ -676,7 +675,7 @@ class KittiRawSequence(_KittiSequence):
         oxts = _read_oxts(streams["oxts"][0])
         T_body_lidar = make_pose(np.eye(3), [0.0, 0.0, lidar_height_m])
         T_body_imu = T_body_lidar @ T_velo_imu
-        T_world_imu = oxts_poses(oxts) if truth == "positions" else oxts_velocity_poses(t["oxts"], oxts)
+        T_world_imu = oxts_poses(oxts) if self.truth == "positions" else oxts_velocity_poses(t["oxts"], oxts)
         T_world_body = T_world_imu @ invert(T_body_imu)
         truth = Trajectory.from_poses(t["oxts"], nearest_pose(T_world_body))
         spec = odometry_spec or OdometrySpec(rate_hz=1.0 / float(np.median(np.diff(t["oxts"]))) if len(t["oxts"]) > 1 else 10.0)

@@ -39,7 +39,7 @@ from dem_graph.sim.pipeline import SCENARIO_YAML
 from dem_graph.sim.simulator import SimulatedSequence
 from dem_graph.studies.grid import LOCAL, GridJob, JobFailure, run_grid
 from dem_graph.studies.headline import headline
-from dem_graph.studies.study import write_rows_csv
+from dem_graph.studies.study import mean_or_nan, standard_error, write_rows_csv
 
 INGREDIENTS = ("tracks", "laser", "odometry")
 DATASET_INGREDIENTS = ("laser", "odometry")  # those that make a dataset of their own
@@ -218,7 +218,7 @@ def ablation_row(
     pitch = Rotation.from_matrix(T_true[:3, :3].T @ T_est[:3, :3]).as_rotvec()[1]
     h = headline(run.metrics)
     return AblationRow(
-        folder.name, estimator, label, sigma, float(T_est[2, 3] - T_true[2, 3]), float(np.degrees(pitch)), h["ate_anchored_rmse_m"],
+        folder.name, estimator, label, sigma, h["final_height_error_m"], float(np.degrees(pitch)), h["ate_anchored_rmse_m"],
         h["dem_rmse_laser_cells_m"], "ok" if run.error is None else f"stopped: {run.error}",
     )
 
@@ -238,16 +238,9 @@ class AblationResult:
         out = []
         for label in dict.fromkeys(r.ingredients for r in self.rows):
             ok = [r for r in self.rows if r.ingredients == label and math.isfinite(r.final_height_error_m)]
-            dz = np.array([r.final_height_error_m for r in ok])
-            se = float(dz.std(ddof=1) / np.sqrt(len(dz))) if len(dz) > 1 else math.nan
-            pitch = [r.final_pitch_error_deg for r in ok]
+            dz = [r.final_height_error_m for r in ok]
             dem = [r.dem_rmse_m for r in ok if math.isfinite(r.dem_rmse_m)]
-            out.append(
-                (
-                    label, len(ok), float(dz.mean()) if len(dz) else math.nan, se,
-                    float(np.mean(pitch)) if pitch else math.nan, float(np.mean(dem)) if dem else math.nan,
-                )
-            )
+            out.append((label, len(ok), mean_or_nan(dz), standard_error(dz), mean_or_nan([r.final_pitch_error_deg for r in ok]), mean_or_nan(dem)))
         return out
 
     def table(self) -> str:

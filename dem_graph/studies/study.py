@@ -49,11 +49,13 @@ class StudyRow:
     matched_fraction: float = math.nan  # the tracking yield: searches for live points that matched
 
 
-def _mean(values: list[float]) -> float:
+def mean_or_nan(values: list[float]) -> float:
+    """The mean, NaN for no value."""
     return float(np.mean(values)) if values else math.nan
 
 
-def _standard_error(values: list[float]) -> float:
+def standard_error(values: list[float]) -> float:
+    """The standard error of the mean (sample std / sqrt(n)), NaN for fewer than two values."""
     return float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else math.nan
 
 
@@ -95,7 +97,7 @@ class StudyResult:
             dem = [r.dem_rmse_m for r in ok if math.isfinite(r.dem_rmse_m)]
             out.append(
                 EstimatorSummary(
-                    name, len(ok), _mean([r.ate_m for r in ok]), _mean([r.frame_ms_median for r in ok]), _mean(dz), _standard_error(dz), _mean(dem)
+                    name, len(ok), mean_or_nan([r.ate_m for r in ok]), mean_or_nan([r.frame_ms_median for r in ok]), mean_or_nan(dz), standard_error(dz), mean_or_nan(dem)
                 )
             )
         return out
@@ -266,4 +268,4 @@ def estimator_study(
     return StudyResult(rows, scenario_name, max_frames)
 
 
-__all__ = ["GRAPH_PROCESS", "EstimatorSummary", "StudyResult", "StudyRow", "estimator_study", "parse_study_estimators", "run_job", "simulate_job", "write_rows_csv"]
+__all__ = ["GRAPH_PROCESS", "EstimatorSummary", "StudyResult", "StudyRow", "estimator_study", "parse_study_estimators", "run_job", "mean_or_nan", "simulate_job", "standard_error", "write_rows_csv"]
