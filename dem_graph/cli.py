@@ -489,17 +489,19 @@ def _read_calibration_recording(recording: Path, layout: str, topics: dict):
     """The recording in ``layout``, after checking that the options given are those of that layout."""
     flag = {name: "--" + name.replace("_path", "").replace("_", "-") for name in _ROSBAG_OPTIONS}
     if layout == "radlocc":
-        given = [flag[k] for k, v in topics.items() if v is not None]
+        given = [flag[k] for k, v in topics.items() if v is not None and k != "intrinsics_path"]
         if given:
             raise click.UsageError(f"{', '.join(given)}: only for --format rosbag")
         from dem_graph.calibration.readers import read_radlocc_recording
 
-        return read_radlocc_recording(recording)
+        return read_radlocc_recording(recording, intrinsics_path=topics["intrinsics_path"])
     for name in ("image_topic", "scan_topic"):
         if topics[name] is None:
             raise click.UsageError(f"--format rosbag needs {flag[name]}")
     if (topics["camera_info_topic"] is None) == (topics["intrinsics_path"] is None):
         raise click.UsageError("--format rosbag needs the intrinsics: give --camera-info-topic or --intrinsics (one of them)")
+    if topics["intrinsics_path"] is not None and topics["intrinsics_path"].suffix.lower() == ".mat":
+        raise click.UsageError("--intrinsics: a MATLAB .mat file is read only with --format radlocc; give an OpenCV XML/YAML file")
     from dem_graph.calibration.rosbag_reader import read_rosbag_recording
 
     return read_rosbag_recording(recording, **topics)
@@ -517,14 +519,24 @@ def _read_calibration_recording(recording: Path, layout: str, topics: dict):
 @click.option("--image-topic", default=None, help="rosbag: sensor_msgs/Image or CompressedImage topic.")
 @click.option("--scan-topic", default=None, help="rosbag: sensor_msgs/LaserScan topic.")
 @click.option("--camera-info-topic", default=None, help="rosbag: sensor_msgs/CameraInfo topic with the intrinsics (or give --intrinsics).")
-@click.option("--intrinsics", "intrinsics_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="rosbag: OpenCV intrinsics file (XML/YAML) instead of --camera-info-topic.")
+@click.option("--intrinsics", "intrinsics_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Intrinsics file: OpenCV XML/YAML or (radlocc only) the MATLAB toolbox's Calib_Results.mat; rosbag: instead of --camera-info-topic [radlocc default: xml/out_camera_data.xml, else Calib_Results.mat in the folder or data/].")
 @click.option("--window-deg", default=None, help="Search the board only between these beam angles, degrees, as A,B.")
 @click.option("--max-dt-s", type=float, default=0.05, show_default=True, help="Longest time between an image and its scan, seconds.")
-@click.option("--range-sigma-m", type=float, default=0.02, show_default=True, help="Range noise of the scanner, metres.")
+@click.option(
+    "--range-sigma-m",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=None,
+    help="Range noise of the scanner, metres: a starting value; the residuals decide (a warning when they disagree by more than 2x) [default: from the scans].",
+)
+@click.option("--fix-range-sigma", is_flag=True, help="Hold --range-sigma-m instead of estimating the noise from the residuals.")
+@click.option("--board-margin-m", type=click.FloatRange(min=0.0), default=None, help="How far the board extends beyond its outer squares, metres [default: half a square].")
+@click.option("--plane-tol-m", type=click.FloatRange(min=0.0, min_open=True), default=None, help="Farthest an on-board return may lie from the board's plane, metres [default: 4 sigma of the range noise].")
+@click.option("--dark-bias/--no-dark-bias", default=True, show_default=True, help="Estimate and remove the range bias of returns on dark squares.")
 @click.option("--jackknife/--no-jackknife", default=True, show_default=True, help="Also the leave-one-pose-out spread of the estimate.")
 @_friendly_errors
 def calibrate(
-    recording, rig_path, out_dir, layout, board_corners, square_m, image_topic, scan_topic, camera_info_topic, intrinsics_path, window_deg, max_dt_s, range_sigma_m, jackknife
+    recording, rig_path, out_dir, layout, board_corners, square_m, image_topic, scan_topic, camera_info_topic, intrinsics_path, window_deg, max_dt_s,
+    range_sigma_m, fix_range_sigma, board_margin_m, plane_tol_m, dark_bias, jackknife,
 ) -> None:
     """Estimate T_cam_laser from checkerboard views and write the rig with it."""
     import numpy as np
@@ -533,18 +545,27 @@ def calibrate(
     from dem_graph.calibration.report import rig_from_recording, write_calibration
     from dem_graph.geometry.rig import load_rig
 
-    options = CalibrationOptions(window_rad=_angle_window(window_deg), max_dt_s=max_dt_s, range_sigma_m=range_sigma_m, jackknife=jackknife)
+    if fix_range_sigma and range_sigma_m is None:
+        raise click.UsageError("--fix-range-sigma holds the value of --range-sigma-m: give it")
+    options = CalibrationOptions(
+        window_rad=_angle_window(window_deg), max_dt_s=max_dt_s, range_sigma_m=range_sigma_m, estimate_range_sigma=not fix_range_sigma,
+        board_margin_m=board_margin_m, plane_tol_m=plane_tol_m, dark_bias=dark_bias, jackknife=jackknife,
+    )
     topics = {"image_topic": image_topic, "scan_topic": scan_topic, "camera_info_topic": camera_info_topic, "intrinsics_path": intrinsics_path}
     data = _read_calibration_recording(recording, layout, topics)
     board = _calibration_board(data.board, board_corners, square_m)
     if board is None:
         raise click.UsageError(f"the board's size is not known ({recording} does not give it): give --board COLSxROWS and --square-m")
-    rig = load_rig(rig_path) if rig_path else rig_from_recording(data, range_sigma_m, source=recording)
+    rig = load_rig(rig_path) if rig_path else rig_from_recording(data, range_sigma_m or 0.01, source=recording)  # a bad recording fails here, first
     result = calibrate_recording(data, options, board)
+    if not rig_path:  # the rig made from the recording carries the noise the calibration found
+        rig = rig_from_recording(data, result.noise.sigma_m, source=recording)
     paths = write_calibration(result, data, rig, out_dir, max_dt_s)
     used = sum(v.used for v in result.views)
     click.echo(f"T_cam_laser from {used} of {len(result.views)} views:\n{np.array2string(result.T_cam_laser, precision=4, suppress_small=True)}")
     click.echo(f"sigma rot (deg): {np.round(result.sigma_rot_deg, 3).tolist()}, sigma trans (mm): {np.round(result.sigma_trans_mm, 1).tolist()}")
+    click.echo(result.noise.summary())
+    click.echo(result.dark.summary())
     report = result.to_dict()
     if report["jackknife"] is not None:
         jk = report["jackknife"]
@@ -570,15 +591,25 @@ def calibrate(
     show_default=True,
     help="How the board is held: random tilts (many nearly upright), or as docs/calibration.md advises (tilted 34-57 deg forward or back).",
 )
+@click.option("--board", "board_corners", default="9x6", show_default=True, callback=_board_corners, help="Inner corners of the checkerboard, COLSxROWS.")
+@click.option("--square-m", type=click.FloatRange(min=0.0, min_open=True), default=0.09, show_default=True, help="Side of the squares, metres.")
+@click.option("--margin-m", type=click.FloatRange(min=0.0), default=0.05, show_default=True, help="White border of the board beyond its squares, metres.")
+@click.option("--dark-dropout", type=click.FloatRange(0.0, 1.0), default=0.0, show_default=True, help="Probability that a return on a dark square is lost.")
+@click.option("--dark-bias-m", type=float, default=0.0, show_default=True, help="Range bias of the returns on dark squares, metres (positive: read too far).")
+@click.option("--neighbour", is_flag=True, help="A panel beside the board, 3-8 cm from its edge and 1-4 cm behind its plane.")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Recording folder to write (RADLOCC layout, with truth.yaml).")
 @_friendly_errors
-def simulate_calibration_command(seed, n_views, corner_sigma_px, range_sigma_m, poses, out_dir) -> None:
+def simulate_calibration_command(seed, n_views, corner_sigma_px, range_sigma_m, poses, board_corners, square_m, margin_m, dark_dropout, dark_bias_m, neighbour, out_dir) -> None:
     """Write a synthetic calibration recording with known T_cam_laser."""
+    from dem_graph.calibration.board import BoardSpec
     from dem_graph.calibration.simulate import simulate_calibration, write_recording
 
     if n_views < 1:
         raise click.BadParameter("at least one view", param_hint="--views")
-    sim = simulate_calibration(seed, n_views, corner_sigma_px, range_sigma_m, pose_protocol=poses)
+    sim = simulate_calibration(
+        seed, n_views, corner_sigma_px, range_sigma_m, board=BoardSpec(*board_corners, square_m), margin_m=margin_m, pose_protocol=poses,
+        dark_dropout=dark_dropout, dark_bias_m=dark_bias_m, neighbour=neighbour,
+    )
     out = write_recording(sim, out_dir, seed)
     click.echo(f"recording: {out} ({n_views} views, truth in {out / 'truth.yaml'})")
 

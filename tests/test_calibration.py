@@ -121,7 +121,7 @@ def test_no_board_in_the_images_skips_views_then_errors():
     boards = _boards(sim, None)
     boards[0] = None
     result = calibrate_views(boards, sim.scans.ranges_m, sim.scans.angles_rad, sim.board)
-    assert result.views[0].reason == "no board found in the image" and not result.views[0].used
+    assert result.views[0].reason == "no 9x6 inner-corner board found in the image" and not result.views[0].used
     with pytest.raises(CalibrationError, match="2 usable views"):
         calibrate_views([None] * 4 + boards[4:], sim.scans.ranges_m, sim.scans.angles_rad, sim.board)
 

@@ -112,7 +112,8 @@ def test_simulated_recording_calibrates_through_the_command(tmp_path):
     rig = load_rig(out / "rig.yaml")
     np.testing.assert_allclose(rig.T_cam_laser, T, atol=1e-9)
     assert rig.T_cam_laser_covariance is not None
-    assert (out / "views" / "view_00.png").is_file()
+    assert (out / "views" / "view_01.png").is_file() and not (out / "views" / "view_00.png").exists()  # numbered as RGB1.png
+    assert [v["number"] for v in report["views"]] == list(range(1, len(report["views"]) + 1))
 
 
 def test_command_reports_a_missing_recording_in_one_line(tmp_path):

@@ -173,7 +173,7 @@ def test_command_calibrates_a_bag_with_the_board_given(recorded):
     T = np.asarray(json.loads((out / "calibration.json").read_text())["T_cam_laser"])
     expected = calibrate_recording(read_radlocc_recording(recorded.folder), CalibrationOptions(range_sigma_m=RANGE_SIGMA_M)).T_cam_laser
     np.testing.assert_allclose(T, expected, rtol=0, atol=1e-9)
-    picture = cv2.imread(str(out / "views" / "view_00.png"), cv2.IMREAD_UNCHANGED)
+    picture = cv2.imread(str(out / "views" / "view_01.png"), cv2.IMREAD_UNCHANGED)  # a bag numbers its images from 1
     assert picture.shape == (480, 640, 3)  # the bag's grey image drawn on in colour
     # without --board the bag does not say which board it shows
     run = CliRunner().invoke(main, [*args, "--out", str(recorded.tmp / "o2")])

@@ -40,6 +40,34 @@ class BoardSpec:
         x, y = points_board[:, 0], points_board[:, 1]
         return (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
 
+    def dark(self, points_board: np.ndarray, parity: int) -> np.ndarray:
+        """Mask of the (N,2+) board-frame points on a dark square: square ``(i, j)``, its corner nearest the origin
+        at ``(i, j) * square_m`` (``i`` from -1 to ``cols - 1``, ``j`` from -1 to ``rows - 1``), is dark when
+        ``(i + j) % 2 == parity``."""
+        i, j = np.floor(points_board[:, 0] / self.square_m), np.floor(points_board[:, 1] / self.square_m)
+        inside = (i >= -1) & (i <= self.cols - 1) & (j >= -1) & (j <= self.rows - 1)
+        return inside & ((i + j) % 2 == parity)
+
+    def dark_probability(self, points_board: np.ndarray, parity: int, sigma_m: float) -> np.ndarray:
+        """Probability that each (N,2+) board-frame point lies on a dark square when its position is known to
+        ``sigma_m`` (one sigma, on each axis): the colour at the point, flipped with the probability of having
+        crossed the nearest line between squares in x or in y (the white border counts as a flip too)."""
+        from scipy.special import ndtr
+
+        def crossed(c):
+            f = np.mod(c / self.square_m, 1.0) * self.square_m
+            return ndtr(-np.minimum(f, self.square_m - f) / max(sigma_m, 1e-12))
+
+        px, py = crossed(points_board[:, 0]), crossed(points_board[:, 1])
+        flip = px * (1.0 - py) + py * (1.0 - px)
+        dark = self.dark(points_board, parity)
+        return np.where(dark, 1.0 - flip, flip) * np.all(np.isfinite(points_board[:, :2]), axis=1)
+
+    @property
+    def squares(self) -> tuple[int, int]:
+        """Squares per row and per column: one more than the inner corners."""
+        return self.cols + 1, self.rows + 1
+
     @property
     def diagonal_m(self) -> float:
         """Diagonal of the squares' area ((cols+1) x (rows+1) squares)."""
@@ -57,6 +85,7 @@ class BoardObservation:
     plane_covariance: np.ndarray  # 4x4 covariance of [n_cam, d_m] from the corner noise
     reprojection_rms_px: float
     sigma_px: float  # corner noise used for the covariance
+    dark_parity: int | None = None  # which squares are dark (see BoardSpec.dark); None when not known
 
 
 def detect_corners(image: np.ndarray, board: BoardSpec) -> np.ndarray | None:
@@ -69,6 +98,32 @@ def detect_corners(image: np.ndarray, board: BoardSpec) -> np.ndarray | None:
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
     corners = cv2.cornerSubPix(gray, corners, (5, 5), (-1, -1), criteria)
     return corners.reshape(-1, 2).astype(float)
+
+
+def dark_parity(image: np.ndarray, obs: BoardObservation, board: BoardSpec, K: np.ndarray, distortion: np.ndarray, min_contrast_dn: float = 20.0) -> int | None:
+    """Which squares of the board in ``image`` are dark (the parity of :meth:`BoardSpec.dark`): the mean grey level
+    at the centres of the squares of each parity, the darker one; None when they differ by less than
+    ``min_contrast_dn`` grey levels (a corner detector's ordering says nothing about colour)."""
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    i, j = np.meshgrid(np.arange(-1, board.cols), np.arange(-1, board.rows))
+    centres = np.stack([(i.ravel() + 0.5), (j.ravel() + 0.5), np.zeros(i.size)], axis=1) * board.square_m
+    rvec = cv2.Rodrigues(obs.T_cam_board[:3, :3])[0]
+    uv, _ = cv2.projectPoints(centres, rvec, obs.T_cam_board[:3, 3], np.asarray(K, float), np.asarray(distortion, float))
+    uv = uv.reshape(-1, 2)
+    h, w = gray.shape
+    seen = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] >= 1) & (uv[:, 0] < w - 2) & (uv[:, 1] >= 1) & (uv[:, 1] < h - 2)
+    uv = np.round(np.where(seen[:, None], uv, 0.0)).astype(int)
+    if not np.any(seen):
+        return None
+    u, v = uv[seen, 0], uv[seen, 1]
+    grey = np.mean([gray[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=0)  # 3x3 mean at each centre
+    even = ((i.ravel() + j.ravel()) % 2 == 0)[seen]
+    if not np.any(even) or np.all(even):
+        return None
+    mean_even, mean_odd = float(grey[even].mean()), float(grey[~even].mean())
+    if abs(mean_even - mean_odd) < min_contrast_dn:
+        return None
+    return 0 if mean_even < mean_odd else 1
 
 
 def _plane(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:

@@ -14,18 +14,19 @@ returns near the plane and inside the outline; the refinement then reselects the
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from dem_graph.calibration.board import BoardObservation, BoardSpec, board_from_corners, detect_corners
-from dem_graph.calibration.laser_line import LineSegment, line_segments, pick_board_segment, points_from_ranges
+from dem_graph.calibration.board import BoardObservation, BoardSpec, board_from_corners, dark_parity, detect_corners
+from dem_graph.calibration.laser_line import LineSegment, line_segments, pick_board_segment, points_from_ranges, range_noise_from_scans
 from dem_graph.calibration.readers import CalibrationRecording, pair_nearest
 from dem_graph.calibration.solve import (
     PlaneView,
     Solution,
     check_geometry,
     closed_form,
+    estimate_range_sigma,
     jackknife_covariance,
     pose_groups,
     refine,
@@ -40,33 +41,140 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class CalibrationOptions:
-    """Settings of a calibration; units in the names."""
+    """Settings of a calibration; units in the names. Tolerances left at None are derived from the board's
+    size and the range noise (:func:`tolerances`)."""
 
     window_rad: tuple[float, float] | None = None  # search the board only between these beam angles
     max_dt_s: float = 0.05  # longest time between an image and its scan
-    range_sigma_m: float = 0.02  # range noise of the scanner
+    range_sigma_m: float | None = None  # range noise: a starting value (None: the scans' own); see estimate_range_sigma
+    estimate_range_sigma: bool = True  # False: hold range_sigma_m, which must then be given
     corner_sigma_px: float | None = None  # corner noise; None: from each board's reprojection residuals
     range_min_m: float = 0.1
     range_max_m: float = 30.0
-    board_margin_m: float = 0.15  # how far the board may extend beyond its outer squares
+    board_margin_m: float | None = None  # how far the board may extend beyond its outer squares [half a square]
+    plane_tol_m: float | None = None  # farthest an on-board return may lie from the board's plane [4 sigma, at least 3 mm]
+    dark_bias: bool = True  # estimate the range bias of returns on dark squares (when the images show which are dark)
     min_views: int = 3
     min_normal_spread: float = 0.03  # see solve.normal_spread
-    ransac_iterations: int = 60
+    ransac_iterations: int = 200  # at most; it stops once every view has a segment on its board
     seed: int = 0
     jackknife: bool = False  # also the leave-one-pose-out covariance (one more refinement per pose)
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """How the returns on the board are found, metres (see :func:`tolerances`)."""
+
+    margin_m: float  # beyond the outer squares' outline
+    plane_m: float  # from the board's plane, once the estimate is refined
+    first_plane_m: float  # from the board's plane under the first hypothesis; later selections never go wider
+    hypothesis_m: float  # a hypothesis's segment counts as on its board within this RMS
+    hypothesis_margin_m: float  # ... and beyond the outline by this much (a board's border is unknown)
+    split_m: float  # a scan's run is split where it bends by more
+    jump_m: float  # a run ends at a step larger than this (or five beam spacings per beam)
+    gap_m: float  # a run goes on across missing returns spanning at most this
+
+
+def tolerances(board: BoardSpec, range_sigma_m: float, options: CalibrationOptions = CalibrationOptions()) -> Tolerances:
+    """Tolerances from the board's square and the range noise; ``options`` may set the margin and the plane's.
+
+    The hypothesis from segments is good to about a tenth of a square on the board (a few millimetres on a
+    3 cm board, a centimetre on a 9 cm one); the first selection allows a quarter of a square beyond four
+    sigma, as the noise the scans show can be less than what the board's returns carry (a scanner that
+    smooths neighbouring beams). A run is split where it bends by half a square beyond two sigma: a real
+    scanner's spikes (a Hokuyo's reach 3 cm on a 9 cm board) must not cut the board in pieces, while a
+    neighbouring object, which the selection's outline and plane tolerance keep out, may stay joined. A gap of
+    a square and a half is what a dark square that returns nothing leaves in a run."""
+    sq, sigma = board.square_m, range_sigma_m
+    plane = options.plane_tol_m if options.plane_tol_m is not None else max(4.0 * sigma, 0.003)
+    return Tolerances(
+        margin_m=options.board_margin_m if options.board_margin_m is not None else 0.5 * sq,
+        plane_m=plane,
+        first_plane_m=plane if options.plane_tol_m is not None else plane + 0.25 * sq,
+        hypothesis_m=2.0 * sigma + 0.5 * sq,
+        hypothesis_margin_m=max(1.5 * sq, options.board_margin_m or 0.0),
+        split_m=max(5.0 * sigma, 0.5 * sq + 2.0 * sigma),
+        jump_m=max(5.0 * sigma, 0.2 * sq),
+        gap_m=1.5 * sq,
+    )
 
 
 @dataclass
 class ViewReport:
     """What became of one view."""
 
-    index: int
+    index: int  # position among the recording's images, from 0
     name: str
+    number: int | None = None  # the input's own number for the image (RGB31.png: 31); index + 1 when it has none
     used: bool = False
     reason: str = ""  # why the view was not used
     n_returns: int = 0  # laser returns on the board
     rms_mm: float | None = None  # point-to-plane RMS of those returns at the solution
     corner_rms_px: float | None = None  # board corners' reprojection RMS
+
+
+@dataclass(frozen=True)
+class RangeNoise:
+    """The scanner's range noise: what the fit's residuals say (used), what the scans alone say, what was given."""
+
+    sigma_m: float  # used: the fit's variance-component estimate (or the given value, when held)
+    scans_sigma_m: float  # from the scans' second differences (NaN when too few)
+    scans_samples: int
+    given_sigma_m: float | None
+    estimated: bool
+
+    def warning(self, factor: float = 2.0) -> str | None:
+        """A sentence when the given noise and the residuals disagree by more than ``factor``, else None."""
+        if self.given_sigma_m is None or not self.estimated or self.given_sigma_m <= 0:
+            return None
+        ratio = self.given_sigma_m / self.sigma_m
+        if 1.0 / factor <= ratio <= factor:
+            return None
+        return (
+            f"the stated range noise {1000 * self.given_sigma_m:.1f} mm is {ratio:.1f} times the {1000 * self.sigma_m:.1f} mm "
+            f"the residuals show: the estimate was used (hold the stated value with --fix-range-sigma)"
+        )
+
+    def summary(self) -> str:
+        scans = "too few neighbouring returns" if not np.isfinite(self.scans_sigma_m) else f"{1000 * self.scans_sigma_m:.1f} mm"
+        given = "" if self.given_sigma_m is None else f", given {1000 * self.given_sigma_m:.1f} mm"
+        how = "estimated from the residuals" if self.estimated else "given and held"
+        return f"range noise {1000 * self.sigma_m:.1f} mm ({how}; the scans' neighbouring returns say {scans}{given})"
+
+    def to_dict(self) -> dict:
+        return {
+            "sigma_mm": 1000 * self.sigma_m,
+            "source": "variance-component estimate from the fit's residuals" if self.estimated else "given, held",
+            "scans_sigma_mm": None if not np.isfinite(self.scans_sigma_m) else 1000 * self.scans_sigma_m,
+            "scans_samples": self.scans_samples,
+            "given_sigma_mm": None if self.given_sigma_m is None else 1000 * self.given_sigma_m,
+        }
+
+
+@dataclass(frozen=True)
+class DarkSquares:
+    """Returns on dark squares and their range bias, when the images showed which squares are dark."""
+
+    n_returns: int  # on dark squares, of the returns used
+    n_total: int
+    bias_m: float | None  # estimated and removed; None when not estimated
+    bias_sigma_m: float | None
+    views_with_colours: int  # views whose image showed which squares are dark
+
+    def to_dict(self) -> dict:
+        return {
+            "returns_on_dark_squares": self.n_returns,
+            "returns_used": self.n_total,
+            "range_bias_mm": None if self.bias_m is None else 1000 * self.bias_m,
+            "range_bias_sigma_mm": None if self.bias_sigma_m is None else 1000 * self.bias_sigma_m,
+            "views_with_colours": self.views_with_colours,
+        }
+
+    def summary(self) -> str:
+        if self.bias_m is None:
+            why = "the images did not show which squares are dark" if self.views_with_colours == 0 else "too few returns on them"
+            return f"dark squares: {self.n_returns} of {self.n_total} returns; range bias not estimated ({why})"
+        return f"dark squares: {self.n_returns} of {self.n_total} returns, range bias {1000 * self.bias_m:+.1f} +- {1000 * self.bias_sigma_m:.1f} mm (estimated and removed)"
 
 
 @dataclass
@@ -80,6 +188,9 @@ class CalibrationResult:
     boards: dict[int, BoardObservation] = field(default_factory=dict)
     jackknife_covariance: np.ndarray | None = None  # leave-one-pose-out, same convention as covariance
     n_poses: int = 0  # distinct board poses among the views used
+    noise: RangeNoise | None = None
+    dark: DarkSquares | None = None
+    tolerances: Tolerances | None = None
 
     @property
     def rig_covariance(self) -> np.ndarray:
@@ -124,6 +235,9 @@ class CalibrationResult:
             "sigma_rot_deg": self.sigma_rot_deg.tolist(),
             "sigma_trans_mm": self.sigma_trans_mm.tolist(),
             "T_initial_closed_form": self.T_initial.tolist(),
+            "range_noise": None if self.noise is None else self.noise.to_dict(),
+            "dark_squares": None if self.dark is None else self.dark.to_dict(),
+            "tolerances_m": None if self.tolerances is None else dict(vars(self.tolerances)),
             "variance_factor": self.variance_factor,
             "distinct_poses": self.n_poses,
             "rig_covariance": "jackknife" if self.rig_covariance is self.jackknife_covariance else "formal",
@@ -140,6 +254,7 @@ class CalibrationResult:
             "residual_rms_mm": float(np.sqrt(np.mean([v.rms_mm**2 for v in used]))) if used else None,
             "views": [
                 {
+                    "number": v.number if v.number is not None else v.index + 1,
                     "index": v.index,
                     "name": v.name,
                     "used": v.used,
@@ -162,7 +277,7 @@ def _returns_on_board(T: np.ndarray, obs: BoardObservation, points_laser: np.nda
     return finite & near & inside
 
 
-def _segment_score(T: np.ndarray, obs: BoardObservation, seg: LineSegment, board: BoardSpec, tol_m: float, margin_m: float) -> float:
+def _segment_score(T: np.ndarray, obs: BoardObservation, seg: LineSegment, board: BoardSpec, margin_m: float) -> float:
     """RMS distance of the segment from the board plane under ``T`` (inf when it is mostly outside the board)."""
     X = transform_points(T, seg.points_laser)
     if np.mean(board.contains(transform_points(invert(obs.T_cam_board), X), margin_m)) < 0.8:
@@ -174,11 +289,14 @@ def _view(obs: BoardObservation, points_laser: np.ndarray) -> PlaneView:
     return PlaneView(obs.n_cam, obs.d_m, obs.plane_covariance, points_laser)
 
 
-def _best_hypothesis(candidates: dict[int, list[LineSegment]], preferred: dict[int, LineSegment], boards: dict[int, BoardObservation], board: BoardSpec, options: CalibrationOptions, tol_m: float):
+def _best_hypothesis(
+    candidates: dict[int, list[LineSegment]], preferred: dict[int, LineSegment], boards: dict[int, BoardObservation], board: BoardSpec, options: CalibrationOptions, tol: Tolerances
+):
     """RANSAC over views: the closed form from every view's preferred segment, then from five random views'
     ones, each refined by a quick fit and scored (MSAC) by how far each view's best candidate segment lies
     from its board, capped at ``tol_m``."""
     keys = sorted(preferred)
+    tol_m = tol.hypothesis_m
     rng = np.random.default_rng(options.seed)
     best, best_score = None, -np.inf
     sample_size = min(5, len(keys))
@@ -189,7 +307,7 @@ def _best_hypothesis(candidates: dict[int, list[LineSegment]], preferred: dict[i
             T = refine_unweighted(views, closed_form(views), tol_m)
         except (CalibrationError, np.linalg.LinAlgError):
             continue
-        costs = [min((_segment_score(T, boards[k], s, board, tol_m, options.board_margin_m) for s in candidates[k]), default=np.inf) for k in boards]
+        costs = [min((_segment_score(T, boards[k], s, board, tol.hypothesis_margin_m) for s in candidates[k]), default=np.inf) for k in boards]
         score = -float(np.sum(np.minimum(np.square(costs), tol_m**2)))  # MSAC: a view off its board costs tol^2
         if score > best_score:
             best, best_score = T, score
@@ -198,13 +316,42 @@ def _best_hypothesis(candidates: dict[int, list[LineSegment]], preferred: dict[i
     return best
 
 
-def _board_sized_segments(ranges_m: np.ndarray, angles_rad: np.ndarray, options: CalibrationOptions, min_len: float, max_len: float) -> list[LineSegment]:
-    """The scan's straight segments of a length the board can show; splitting and jump limits grow with the range noise."""
-    limit_m = 5.0 * options.range_sigma_m
+def _board_sized_segments(ranges_m: np.ndarray, angles_rad: np.ndarray, options: CalibrationOptions, tol: Tolerances, min_len: float, max_len: float) -> list[LineSegment]:
+    """The scan's straight segments of a length the board can show."""
     segs = line_segments(
-        ranges_m, angles_rad, options.range_min_m, options.range_max_m, options.window_rad, split_tol_m=max(0.07, limit_m), jump_m=max(0.08, limit_m)
+        ranges_m, angles_rad, options.range_min_m, options.range_max_m, options.window_rad, split_tol_m=tol.split_m, jump_m=tol.jump_m, max_gap_m=tol.gap_m
     )
     return [s for s in segs if min_len <= s.length_m <= max_len]
+
+
+def _pre_fit_sigma(ranges_m: np.ndarray, angles_rad: np.ndarray, board: BoardSpec, options: CalibrationOptions, sigma_scans: float) -> float:
+    """The range noise the segmentation and the first selection assume, before any fit: the larger of the scans'
+    neighbour-to-neighbour noise and the median RMS about their lines of the board-sized straight segments
+    (found with loose tolerances of half a square). A scanner that smooths neighbouring beams, or reads dark
+    squares long, shows the first small and the second as large as the fit will find it (a Hokuyo: 3 and 9 mm)."""
+    floor = sigma_scans if np.isfinite(sigma_scans) and sigma_scans > 0 else options.range_sigma_m or 0.01
+    loose = 0.5 * board.square_m + 5.0 * floor
+    rms = []
+    for row in ranges_m:
+        segs = line_segments(row, angles_rad, options.range_min_m, options.range_max_m, options.window_rad, split_tol_m=loose, jump_m=loose, max_gap_m=1.5 * board.square_m)
+        best = pick_board_segment(segs, 2.0 * board.square_m, board.diagonal_m + board.square_m)
+        if best is not None:
+            rms.append(best.rms_m)
+    return max(floor, float(np.median(rms))) if rms else floor
+
+
+def _mark_dark(view: PlaneView, T: np.ndarray, obs: BoardObservation, board: BoardSpec) -> PlaneView:
+    """The view with each return's probability of lying on a dark square (under ``T``), when the board's colours
+    are known. A return is placed where its beam meets the board's plane, not at its range: at a slant, range
+    noise and the bias itself move a return across a square's edge. Its place is taken as known to a
+    twentieth of a square (the first estimate's error on the board is about a tenth)."""
+    if obs.dark_parity is None:
+        return view
+    beams_cam = view.points_laser @ T[:3, :3].T / np.maximum(np.linalg.norm(view.points_laser, axis=1), 1e-9)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (obs.d_m - obs.n_cam @ T[:3, 3]) / (beams_cam @ obs.n_cam)
+    X_board = transform_points(invert(obs.T_cam_board), T[:3, 3] + s[:, None] * beams_cam)
+    return replace(view, dark=board.dark_probability(X_board, obs.dark_parity, 0.05 * board.square_m))
 
 
 def calibrate_views(
@@ -225,17 +372,24 @@ def calibrate_views(
     n = len(boards)
     names = names or [f"view {k}" for k in range(n)]
     reports = reports or [ViewReport(k, names[k]) for k in range(n)]
-    tol_m = max(0.05, 4.0 * options.range_sigma_m)  # wide: the Huber loss, not a cut, deals with the tails
-    min_len, max_len = 2.0 * board.square_m, board.diagonal_m + 2.0 * options.board_margin_m
+    if not options.estimate_range_sigma and options.range_sigma_m is None:
+        raise CalibrationError("the range noise is held (estimate_range_sigma off) but not given: give range_sigma_m")
+    with_board = [k for k in range(n) if boards[k] is not None and not reports[k].reason]
+    sigma_scans, n_triples = range_noise_from_scans(ranges_m[with_board], options.range_min_m, options.range_max_m) if with_board else (np.nan, 0)
+    sigma = _pre_fit_sigma(ranges_m[with_board], angles_rad, board, options, sigma_scans)
+    if not options.estimate_range_sigma:
+        sigma = float(options.range_sigma_m)
+    tol = tolerances(board, sigma, options)
+    min_len, max_len = 2.0 * board.square_m, board.diagonal_m + 2.0 * tol.hypothesis_margin_m
     obs, candidates, preferred = {}, {}, {}
     for k in range(n):
         if reports[k].reason:
             continue
         if boards[k] is None:
-            reports[k].reason = "no board found in the image"
+            reports[k].reason = f"no {board.cols}x{board.rows} inner-corner board found in the image"
             continue
         reports[k].corner_rms_px = boards[k].reprojection_rms_px
-        segs = _board_sized_segments(ranges_m[k], angles_rad, options, min_len, max_len)
+        segs = _board_sized_segments(ranges_m[k], angles_rad, options, tol, min_len, max_len)
         if not segs:
             reports[k].reason = "no straight laser segment of the board's size in the scan"
             continue
@@ -245,34 +399,50 @@ def calibrate_views(
     if usable < options.min_views:
         raise CalibrationError(f"{usable} usable views (board found and a laser segment of its size), at least {options.min_views} are needed")
     check_geometry([_view(o, np.zeros((0, 3))) for o in obs.values()], options.min_views, options.min_normal_spread)
-    T = _best_hypothesis(candidates, preferred, obs, board, options, max(0.04, 2.0 * options.range_sigma_m))
+    T = _best_hypothesis(candidates, preferred, obs, board, options, tol)
     if T is None:
         raise CalibrationError("no consistent initial estimate: the laser segments and boards do not agree; give --window-deg around the board")
     solution: Solution | None = None
     selected: dict[int, np.ndarray] = {}
+    views: list[PlaneView] = []
     points = {k: points_from_ranges(ranges_m[k], angles_rad) for k in obs}  # each scan's returns, laser frame
-    for _ in range(2):
-        selected = {}
+    sigma_fit = options.range_sigma_m if options.range_sigma_m is not None else sigma
+    first_tol = tol
+    plane_tol = tol.first_plane_m
+    for selection in range(3):  # the colours of the squares under the return follow the estimate: two more rounds
+        if selection:  # four sigma of the noise the fit found, never wider than the first selection
+            tol = tolerances(board, sigma_fit, options)
+            plane_tol = min(tol.plane_m, first_tol.first_plane_m)
+        selected, views = {}, []
         for k, o in obs.items():
-            mask = _returns_on_board(T, o, points[k], board, tol_m, options.board_margin_m)
-            if mask.sum() >= 5:
-                selected[k] = np.flatnonzero(mask)
-        views = [_view(obs[k], points[k][idx]) for k, idx in selected.items()]
+            idx = np.flatnonzero(_returns_on_board(T, o, points[k], board, plane_tol, tol.margin_m))
+            if len(idx) >= 5:
+                selected[k] = idx
+                views.append(_mark_dark(_view(o, points[k][idx]), T, o, board))
         check_geometry(views, options.min_views, options.min_normal_spread)
         if solution is None:
             T_closed_form = closed_form(views)  # reported; the refinement starts from the hypothesis
-        solution = refine(views, T, options.range_sigma_m)
+        if options.estimate_range_sigma:
+            solution, sigma_fit = estimate_range_sigma(views, T, sigma_fit, dark_bias=options.dark_bias)
+        else:
+            solution = refine(views, T, sigma_fit, dark_bias=options.dark_bias)
         T = solution.T_cam_laser
     for k in obs:
         if k not in selected:
             reports[k].reason = "no laser return on the board"
     for (k, idx), rms in zip(selected.items(), solution.view_rms_m):
         reports[k].used, reports[k].n_returns, reports[k].rms_mm = True, len(idx), 1000.0 * float(rms)
-    log.info("calibrated from %d of %d views, variance factor %.2f", len(selected), n, solution.variance_factor)
+    log.info("calibrated from %d of %d views, range noise %.1f mm, variance factor %.2f", len(selected), n, 1000 * sigma_fit, solution.variance_factor)
     result = CalibrationResult(solution.T_cam_laser, solution.covariance, T_closed_form, solution.variance_factor, reports, selected, obs)
     result.n_poses = len(pose_groups(views))
+    result.noise = RangeNoise(sigma_fit, float(sigma_scans), n_triples, options.range_sigma_m, options.estimate_range_sigma)
+    result.dark = DarkSquares(solution.n_dark, solution.n_points, solution.dark_bias_m, solution.dark_bias_sigma_m, sum(o.dark_parity is not None for o in obs.values()))
+    result.tolerances = tol
+    warning = result.noise.warning()
+    if warning:
+        log.warning(warning)
     if options.jackknife:
-        found = jackknife_covariance(views, solution.T_cam_laser, options.range_sigma_m)
+        found = jackknife_covariance(views, solution.T_cam_laser, sigma_fit, dark_bias=options.dark_bias)
         if found is None:
             log.warning("fewer than four distinct board poses: no leave-one-pose-out spread")
         else:
@@ -292,7 +462,7 @@ def calibrate_recording(recording: CalibrationRecording, options: CalibrationOpt
     scans = recording.scans
     pairs = pair_nearest(recording.image_times_s, scans.times_s, options.max_dt_s)
     n = len(recording.image_names)
-    reports = [ViewReport(k, recording.image_names[k]) for k in range(n)]
+    reports = [ViewReport(k, recording.image_names[k], recording.view_numbers[k]) for k in range(n)]
     boards: list[BoardObservation | None] = [None] * n
     ranges = np.full((n, scans.n_beams), np.nan)
     K, dist = recording.intrinsics.K, recording.intrinsics.distortion
@@ -301,9 +471,25 @@ def calibrate_recording(recording: CalibrationRecording, options: CalibrationOpt
             reports[k].reason = f"no scan within {options.max_dt_s} s of the image"
             continue
         ranges[k] = scans.ranges_m[pairs[k]]
-        corners = detect_corners(recording.load_image(k), board)
+        image = recording.load_image(k)
+        corners = detect_corners(image, board)
         if corners is None:
-            log.warning("%s: no %dx%d board found", recording.image_names[k], board.cols, board.rows)
+            log.warning("%s: no %dx%d inner-corner board found", recording.image_names[k], board.cols, board.rows)
             continue
-        boards[k] = board_from_corners(corners, board, K, dist, options.corner_sigma_px)
+        found = board_from_corners(corners, board, K, dist, options.corner_sigma_px)
+        boards[k] = replace(found, dark_parity=dark_parity(image, found, board, K, dist))
+    searched = sum(pairs >= 0)
+    if searched and not any(b is not None for b in boards):
+        raise CalibrationError(no_board_message(board, searched))
     return calibrate_views(boards, ranges, scans.angles_rad, board, options, reports=reports)
+
+
+def no_board_message(board: BoardSpec, n_images: int) -> str:
+    """The error when no image shows the board: the inner corners searched for, and what to give if the
+    board's size was given in squares."""
+    cols, rows = board.squares
+    hint = f"--board {board.cols - 1}x{board.rows - 1}" if min(board.cols, board.rows) > 2 else "a board of at least 3x3 squares"
+    return (
+        f"no board of {board.cols}x{board.rows} inner corners (a board of {cols}x{rows} squares) found in any of {n_images} images; "
+        f"--board counts inner corners: if the board has {board.cols}x{board.rows} squares, give {hint}"
+    )

@@ -78,7 +78,8 @@ def draw_view(image: np.ndarray, recording_ranges_m: np.ndarray, angles_rad: np.
 
 
 def write_calibration(result: CalibrationResult, recording: CalibrationRecording, rig: SensorRig, out_dir: str | Path, max_dt_s: float) -> dict[str, Path]:
-    """Write ``rig.yaml``, ``calibration.json`` and ``views/view_NN.png`` (one per view whose board was found)."""
+    """Write ``rig.yaml``, ``calibration.json`` and ``views/view_NN.png`` (one per view whose board was found, NN the
+    input's number for the image: RGB31.png gives view_31.png)."""
     out = Path(out_dir)
     views_dir = out / "views"
     try:
@@ -94,7 +95,7 @@ def write_calibration(result: CalibrationResult, recording: CalibrationRecording
         if k not in result.boards or pairs[k] < 0:
             continue
         picture = draw_view(recording.load_image(k, color=True), recording.scans.ranges_m[pairs[k]], recording.scans.angles_rad, result.on_board.get(k, np.zeros(0, int)), result, K, dist, k)
-        path = views_dir / f"view_{k:02d}.png"
+        path = views_dir / f"view_{recording.view_numbers[k]:02d}.png"  # numbered as the input numbers its images
         if not cv2.imwrite(str(path), picture):
             raise DatasetError(path, "cannot write the picture")
     return {"rig": out / "rig.yaml", "report": out / "calibration.json", "views": views_dir}

@@ -38,6 +38,15 @@ class PlaneView:
     d_m: float
     plane_covariance: np.ndarray  # 4x4, of [n_cam, d_m]
     points_laser: np.ndarray  # (M,3), z = 0
+    dark: np.ndarray | None = None  # (M,) probability that the point lies on a dark square (its range may be biased)
+
+    def with_dark_bias(self, bias_m: float) -> PlaneView:
+        """The view with its returns moved back along their beams by ``bias_m`` times their probability of being dark."""
+        if self.dark is None or bias_m == 0.0 or not np.any(self.dark):
+            return self
+        ranges = np.linalg.norm(self.points_laser, axis=1)
+        scale = 1.0 - bias_m * self.dark / np.maximum(ranges, 1e-9)
+        return PlaneView(self.n_cam, self.d_m, self.plane_covariance, self.points_laser * scale[:, None], self.dark)
 
 
 @dataclass(frozen=True)
@@ -48,6 +57,10 @@ class Solution:
     view_rms_m: np.ndarray  # (V,) point-to-plane RMS per view at the solution
     variance_factor: float  # s^2: whitened residuals' sum of squares per degree of freedom
     n_points: int
+    dark_bias_m: float | None = None  # range bias of dark-square returns, when estimated
+    dark_bias_sigma_m: float | None = None
+    n_dark: int = 0  # returns on dark squares
+    robust_variance_factor: float = float("nan")  # (1.4826 median |whitened residual|)^2: s^2 without the outliers' pull
 
 
 def point_plane_residuals(T_cam_laser: np.ndarray, view: PlaneView) -> np.ndarray:
@@ -130,32 +143,80 @@ def _whitened(T: np.ndarray, views: list[PlaneView], W: list, with_jacobian: boo
     return res, jac
 
 
-def refine(views: list[PlaneView], T_initial: np.ndarray, range_sigma_m: float, huber_k: float = 2.5, passes: int = 2) -> Solution:
-    """Robust weighted least squares from ``T_initial`` (see the module's docstring); ``huber_k`` in standard deviations."""
+MIN_DARK_RETURNS = 20  # fewer returns on dark squares than this: their range bias is not estimated
+
+
+def refine(
+    views: list[PlaneView], T_initial: np.ndarray, range_sigma_m: float, huber_k: float = 2.5, passes: int = 2, dark_bias: bool = True
+) -> Solution:
+    """Robust weighted least squares from ``T_initial`` (see the module's docstring); ``huber_k`` in standard deviations.
+
+    With ``dark_bias`` and at least :data:`MIN_DARK_RETURNS` returns marked dark, a seventh unknown is the
+    range bias of those returns (a dark surface reads long or short on many scanners): each dark return is
+    moved back along its beam by it. Its covariance is part of the fit's; ``covariance`` is the 6x6 block
+    of ``T_cam_laser``."""
     T = np.array(T_initial, dtype=float)
+    n_dark = int(sum(int(np.sum(v.dark > 0.5)) for v in views if v.dark is not None))
+    with_bias = dark_bias and n_dark >= MIN_DARK_RETURNS
+    n_par = 7 if with_bias else 6
+    bias = 0.0
+
+    def residuals(x, T0):
+        T1 = retract(T0, x[:6])
+        moved = [v.with_dark_bias(x[6]) for v in views] if with_bias else views
+        return _whitened(T1, moved, _whiteners(T1, moved, range_sigma_m), False)[0]
+
     for _ in range(passes):
         T0 = T
         # the whitening is recomputed at every evaluation: a fixed one lets the fit favour rotations that
         # turn the beams towards grazing (where range noise shows less), a bias of the order of the noise
+        x0 = np.append(np.zeros(6), bias) if with_bias else np.zeros(6)
         fit = least_squares(
-            lambda xi, T0=T0: _whitened(retract(T0, xi), views, _whiteners(retract(T0, xi), views, range_sigma_m), False)[0],
-            np.zeros(6),
-            jac="2-point",
-            diff_step=1e-7,
-            loss="huber",
-            f_scale=huber_k,
-            x_scale=np.full(6, 0.01),
+            residuals, x0, args=(T0,), jac="2-point", diff_step=1e-7, loss="huber", f_scale=huber_k, x_scale=np.full(n_par, 0.01)
         )
-        T = retract(T0, fit.x)
-    L = _whiteners(T, views, range_sigma_m)
-    r, J = _whitened(T, views, L, True)
+        T = retract(T0, fit.x[:6])
+        bias = float(fit.x[6]) if with_bias else 0.0
+    moved = [v.with_dark_bias(bias) for v in views] if with_bias else views
+    L = _whiteners(T, moved, range_sigma_m)
+    r, J = _whitened(T, moved, L, True)
+    if with_bias:  # d(residual)/d(bias) = -(dark) * beam . n, whitened like the residuals
+        cols = []
+        for v, w in zip(moved, L):
+            beams = v.points_laser / np.maximum(np.linalg.norm(v.points_laser, axis=1), 1e-9)[:, None]
+            dark = v.dark if v.dark is not None else np.zeros(len(beams))
+            cols.append(_apply(w, -dark * (beams @ T[:3, :3].T @ v.n_cam)))
+        J = np.column_stack([J, np.concatenate(cols)])
     w = np.where(np.abs(r) <= huber_k, 1.0, huber_k / np.maximum(np.abs(r), 1e-12))
-    dof = max(len(r) - 6, 1)
+    dof = max(len(r) - n_par, 1)
     s2 = float(np.sum(w * r**2) / dof)
     info = J.T @ (w[:, None] * J)
-    cov = s2 * np.linalg.inv(info)
-    rms = np.array([np.sqrt(np.mean(point_plane_residuals(T, v) ** 2)) for v in views])
-    return Solution(T, 0.5 * (cov + cov.T), np.array(T_initial, dtype=float), rms, s2, len(r))
+    cov_all = s2 * np.linalg.inv(info)
+    cov = cov_all[:6, :6]
+    rms = np.array([np.sqrt(np.mean(point_plane_residuals(T, v) ** 2)) for v in moved])
+    return Solution(
+        T, 0.5 * (cov + cov.T), np.array(T_initial, dtype=float), rms, s2, len(r),
+        bias if with_bias else None, float(np.sqrt(cov_all[6, 6])) if with_bias else None, n_dark, float((1.4826 * np.median(np.abs(r))) ** 2),
+    )
+
+
+def estimate_range_sigma(
+    views: list[PlaneView], T_initial: np.ndarray, sigma_start_m: float, huber_k: float = 2.5, dark_bias: bool = True, max_iterations: int = 8
+) -> tuple[Solution, float]:
+    """The fit and the range noise that makes its variance factor one (a variance-component estimate of the
+    range part, with the board planes' part from the corners held): the noise is scaled by the square root
+    of the variance factor and the fit redone until the factor is within 3 % of one. The factor is the robust
+    one (from the median absolute whitened residual), so that returns off the board do not inflate the noise,
+    which would widen the selection, which would let more of them in. Returns the last fit (made with the
+    returned noise) and the noise in metres."""
+    sigma = float(sigma_start_m)
+    T = np.array(T_initial, dtype=float)
+    for _ in range(max_iterations):
+        solution = refine(views, T, sigma, huber_k, passes=1, dark_bias=dark_bias)
+        T = solution.T_cam_laser
+        if abs(solution.robust_variance_factor - 1.0) <= 0.03:
+            break
+        sigma = float(np.clip(sigma * np.sqrt(solution.robust_variance_factor), 0.1 * sigma, 10.0 * sigma))
+    return refine(views, T, sigma, huber_k, dark_bias=dark_bias), sigma
 
 
 def refine_unweighted(views: list[PlaneView], T_initial: np.ndarray, scale_m: float, max_evaluations: int = 30) -> np.ndarray:
@@ -188,7 +249,9 @@ def pose_groups(views: list[PlaneView], angle_tol_rad: float = np.radians(1.0), 
     return groups
 
 
-def jackknife_covariance(views: list[PlaneView], T: np.ndarray, range_sigma_m: float, huber_k: float = 2.5) -> tuple[np.ndarray, int] | None:
+def jackknife_covariance(
+    views: list[PlaneView], T: np.ndarray, range_sigma_m: float, huber_k: float = 2.5, dark_bias: bool = True
+) -> tuple[np.ndarray, int] | None:
     """Leave-one-pose-out covariance of the right perturbation at ``T`` (order [rot, trans]), and the number
     of poses; None with fewer than four poses. Unlike :func:`refine`'s covariance it does not assume the
     range noise is white: a range bias that differs between poses shows in it."""
@@ -198,7 +261,7 @@ def jackknife_covariance(views: list[PlaneView], T: np.ndarray, range_sigma_m: f
     xis = []
     for g in groups:
         rest = [v for k, v in enumerate(views) if k not in g]
-        xis.append(local(T, refine(rest, T, range_sigma_m, huber_k, passes=1).T_cam_laser))
+        xis.append(local(T, refine(rest, T, range_sigma_m, huber_k, passes=1, dark_bias=dark_bias).T_cam_laser))
     xis = np.asarray(xis)
     n = len(xis)
     dev = xis - xis.mean(axis=0)
