@@ -573,6 +573,11 @@ def calibrate(
             f"leave-one-pose-out ({result.n_poses} poses): sigma rot (deg): {np.round(jk['sigma_rot_deg'], 3).tolist()}, "
             f"sigma trans (mm): {np.round(jk['sigma_trans_mm'], 1).tolist()}"
         )
+    if result.model_sensitivity is not None:
+        click.echo(
+            f"noise model (noise halved, doubled, no dark bias): moves up to rot (deg) {np.round(np.degrees(result.model_sensitivity[:3]), 3).tolist()}, "
+            f"trans (mm) {np.round(1000 * result.model_sensitivity[3:], 1).tolist()}"
+        )
     if report["rig_covariance"] == "jackknife":
         click.echo("the leave-one-pose-out spread exceeds the formal covariance (range errors are not white noise): the rig carries the spread")
     click.echo(f"residual RMS {report['residual_rms_mm']:.1f} mm, variance factor {result.variance_factor:.2f}")

@@ -166,6 +166,9 @@ def test_dark_square_bias_is_estimated_and_removed():
     assert d.n_returns > 50
     off = calibrate_views(_boards(sim), sim.scans.ranges_m, sim.scans.angles_rad, sim.board, CalibrationOptions(dark_bias=False))
     assert off.dark.bias_m is None and "not estimated" in off.dark.summary()
+    # the noise model's sensitivity: without the bias term the estimate moves; that move is part of what is reported
+    assert result.model_sensitivity is not None and np.all(np.isfinite(result.model_sensitivity))
+    assert np.max(result.model_sensitivity[3:]) >= 0.5 * np.max(np.abs(local(result.T_cam_laser, off.T_cam_laser)[3:]))
     unknown = calibrate_views(_boards(sim, None), sim.scans.ranges_m, sim.scans.angles_rad, sim.board, CalibrationOptions())
     assert unknown.dark.bias_m is None and "did not show which squares are dark" in unknown.dark.summary()
 
