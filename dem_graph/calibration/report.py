@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 
 from dem_graph.calibration.laser_line import points_from_ranges
-from dem_graph.calibration.pipeline import CalibrationResult
 from dem_graph.calibration.readers import CalibrationRecording, pair_nearest
+from dem_graph.calibration.result import CalibrationResult
 from dem_graph.errors import DatasetError
 from dem_graph.geometry.rig import SensorRig, save_rig, validated
 
