@@ -226,12 +226,11 @@ def calibrate_views(
     views: list[PlaneView] = []
     points = {k: points_from_ranges(ranges_m[k], angles_rad) for k in obs}  # each scan's returns, laser frame
     sigma_fit = options.range_sigma_m if options.range_sigma_m is not None else sigma
-    first_tol = tol
-    plane_tol = tol.first_plane_m
+    widest_plane_m = plane_tol = tol.first_plane_m
     for selection in range(3):  # the colours of the squares under the return follow the estimate: two more rounds
         if selection:  # four sigma of the noise the fit found, never wider than the first selection
             tol = tolerances(board, sigma_fit, options)
-            plane_tol = min(tol.plane_m, first_tol.first_plane_m)
+            plane_tol = min(tol.plane_m, widest_plane_m)
         selected, views = {}, []
         for k, o in obs.items():
             idx = np.flatnonzero(_returns_on_board(T, o, points[k], board, plane_tol, tol.margin_m))

@@ -191,13 +191,21 @@ def write_radlocc_scans(scans: ScanSet, path: str | Path) -> None:
 # ------------------------------------------------------------------ image times
 
 
+def _read_lines(path: Path) -> list[str]:
+    try:
+        return path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(path, f"cannot read the time stamps ({exc})") from None
+
+
 def read_times(path: str | Path) -> np.ndarray:
     """One time stamp (seconds) per line, increasing."""
     path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(path, f"cannot read the time stamps ({exc})") from None
+    return _times_of_lines(path, _read_lines(path))
+
+
+def _times_of_lines(path: Path, lines: list[str]) -> np.ndarray:
+    """:func:`read_times` on lines already read from ``path``."""
     times = []
     for number, line in enumerate(lines, start=1):
         if not line.strip():
@@ -243,15 +251,12 @@ def read_image_list(path: str | Path) -> tuple[np.ndarray, list[str] | None]:
     is the time). Either every line names its image or none does; a file that names none is read by
     :func:`read_times` (same checks, same messages) and its names are ``None``."""
     path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(path, f"cannot read the time stamps ({exc})") from None
+    lines = _read_lines(path)
     entries = [(number, line.split()) for number, line in enumerate(lines, start=1) if line.strip()]
     kinds = [(number, tokens, *_time_and_name(tokens)) for number, tokens in entries]
     first_named = next((number for number, _, kind, _, _ in kinds if kind == "named"), None)
     if first_named is None:
-        return read_times(path), None
+        return _times_of_lines(path, lines), None
     times: list[float] = []
     names: list[str] = []
     seen: dict[str, int] = {}
