@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from dem_graph.datasets.events import CameraFrame
-from dem_graph.frontend.match_kernel import AMBIGUOUS, LOW_SCORE, select_match
+from dem_graph.frontend.match_kernel import AMBIGUOUS, LOW_SCORE, PEAK_AT_BORDER, select_match
 from dem_graph.frontend.tracker import PatchTracker, TrackBatch, TrackResult, TrackStatus
 from dem_graph.pipeline import RunConfig, run_estimator
 
@@ -72,12 +72,14 @@ def _reference_track(tracker: PatchTracker, image, template, uv_pred_px, S_px2=N
         return TrackResult(TrackStatus.LOW_SCORE, None, best, math.nan, searched)
     if status == AMBIGUOUS:
         return TrackResult(TrackStatus.AMBIGUOUS, None, best, second, searched)
+    if status == PEAK_AT_BORDER:  # added with the border test in select_match
+        return TrackResult(TrackStatus.PEAK_AT_BORDER, None, best, math.nan, searched)
     return TrackResult(TrackStatus.OK, np.array([u_lo + j_best + off_u, v_lo + i_best + off_v]), best, second, searched)
 
 
 def _reference_track_many(tracker, image, templates, uv_pred_px, S_px2=None, half_size_px=None, track=_reference_track) -> TrackBatch:
     """``track_many`` as a loop over the reference (or another one-point ``track``), its results as a :class:`TrackBatch`."""
-    code = {TrackStatus.OK: 0, TrackStatus.LOW_SCORE: 1, TrackStatus.AMBIGUOUS: 2, TrackStatus.OUT_OF_IMAGE: 3, TrackStatus.SEARCH_TOO_LARGE: 4, TrackStatus.LOW_TEXTURE: 5}
+    code = {TrackStatus.OK: 0, TrackStatus.LOW_SCORE: 1, TrackStatus.AMBIGUOUS: 2, TrackStatus.OUT_OF_IMAGE: 3, TrackStatus.SEARCH_TOO_LARGE: 4, TrackStatus.LOW_TEXTURE: 5, TrackStatus.PEAK_AT_BORDER: 9}
     res = [
         track(tracker, image, templates[k], uv_pred_px[k], None if S_px2 is None else S_px2[k], half_size_px)
         for k in range(len(templates))
@@ -129,6 +131,20 @@ def _scene(seed: int, n: int = 400):
     return A, B, p, q, pred, S
 
 
+def _border_scene(seed: int, n: int = 60):
+    """Image A, image B (A moved 9.6 px right and down), points whose truth in B lies near or past
+    the last row and column where a template fits, and predictions where it still fits."""
+    rng = np.random.default_rng(seed)
+    A = _texture(seed + 10)
+    shift = np.array([9.6, 9.6])
+    B = cv2.warpAffine(A, np.float32([[1, 0, shift[0]], [0, 1, shift[1]]]), (WIDTH_PX, HEIGHT_PX), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    bottom = np.column_stack([rng.uniform(40.0, WIDTH_PX - 60.0, n // 2), rng.uniform(218.0, 224.0, n // 2)])
+    right = np.column_stack([rng.uniform(298.0, 304.0, n - n // 2), rng.uniform(40.0, 180.0, n - n // 2)])
+    p = np.vstack([bottom, right])
+    pred = np.minimum(p + shift + rng.normal(0.0, 0.3, p.shape), [WIDTH_PX - 8.0, HEIGHT_PX - 8.0])
+    return A, B, p, pred
+
+
 def _templates(tracker, A, points, warp_seed=None):
     """Templates of the patches around ``points`` in A: unwarped, or through random small similarities."""
     patches = [tracker.make_patch(A, x, 0.0) for x in points]
@@ -164,8 +180,16 @@ def test_track_many_equals_the_per_point_reference(seed, warped):
         _assert_same(config.track_many(B, tpl, pred, half_size_px=20), _reference_track_many(config, B, tpl, pred, half_size_px=20, track=PatchTracker.track))
         for half in (0, 3, 20, 41):
             _assert_same(config.track_many(B, tpl, pred, half_size_px=half), _reference_track_many(config, B, tpl, pred, half_size_px=half))
+    # points leaving the image: some refused at the border
+    A_b, B_b, p_b, pred_b = _border_scene(seed)
+    keep_b, tpl_b = _templates(TRACKER, A_b, p_b)
+    pred_b = pred_b[keep_b]
+    for config in (TRACKER, PatchTracker(TRACKER.config.model_copy(update=dict(subpixel=False)))):
+        for track in (_reference_track, PatchTracker.track):
+            _assert_same(config.track_many(B_b, tpl_b, pred_b, half_size_px=4), _reference_track_many(config, B_b, tpl_b, pred_b, half_size_px=4, track=track))
     # every outcome occurs
     statuses = set(TRACKER.track_many(B, tpl, pred, S_px2=S).statuses()) | set(TRACKER.track_many(B, tpl, pred, half_size_px=41).statuses())
+    statuses |= set(TRACKER.track_many(B_b, tpl_b, pred_b, half_size_px=4).statuses())
     assert statuses == set(TrackStatus)
     # a template whose spread is the minimum, to rounding: decided as cv2.meanStdDev decides it
     for k in (30, 31):

@@ -290,6 +290,37 @@ def test_out_of_image_and_clipped_search():
     assert r.ok and np.abs(r.uv_px - q).max() < 0.15
 
 
+def test_a_point_past_the_last_usable_row_or_column_is_refused_not_clamped():
+    """The template's centre can sit no nearer the image border than its half size (row and column
+    232 and 312 here). A point whose truth is past that is refused (PEAK_AT_BORDER), not matched at
+    the border row: before the refusal, 19 of these points were matched, up to 1.4 px short of the
+    truth, all towards the image's inside: the error that made ground points leaving the image by its
+    bottom rows pull the trajectory's height up. Points inside are matched to 0.15 px."""
+    A = _texture(3)
+    shift = np.array([9.8, 10.3])
+    B = _add_noise(_translate(A, shift), 1.0, np.random.default_rng(3))
+    last_u, last_v = WIDTH_PX - 1 - 7, HEIGHT_PX - 1 - 7
+    rng = np.random.default_rng(4)
+    bottom = np.column_stack([rng.uniform(40.0, WIDTH_PX - 60.0, 40), rng.uniform(218.0, 223.0, 40)])  # truth rows 228.3-233.3
+    right = np.column_stack([rng.uniform(298.0, 304.0, 40), rng.uniform(40.0, 180.0, 40)])  # truth columns 307.8-313.8
+    refused = matched = 0
+    for p in np.vstack([bottom, right]):
+        q = p + shift
+        pred = np.minimum(q + rng.normal(0.0, 0.3, 2), [last_u, last_v])  # a prediction where the template still fits
+        r = _track_shifted(TRACKER, A, B, p, pred, half_size_px=4)
+        past = max(q[0] - last_u, q[1] - last_v)
+        if past > 0.1:  # the truth's nearest candidate is the border row or column: no peak to fit
+            # refused; far past the border, the border row's score may already be too low
+            assert r.status in (TrackStatus.PEAK_AT_BORDER, TrackStatus.LOW_SCORE) and r.uv_px is None, (p, q, r)
+            refused += r.status is TrackStatus.PEAK_AT_BORDER
+        elif past < -0.6:  # the candidate nearest the truth has neighbours on both sides
+            assert r.ok and np.abs(r.uv_px - q).max() < 0.15, (p, q, r)
+            matched += 1
+        else:  # within rounding of the border: refused, or matched to the truth
+            assert r.status is TrackStatus.PEAK_AT_BORDER or np.abs(r.uv_px - q).max() < 0.15, (p, q, r)
+    assert refused >= 15 and matched >= 15, (refused, matched)
+
+
 def test_flat_template_is_low_texture():
     A = _texture()
     r = TRACKER.track(A, np.full((15, 15), 90.0, np.float32), (160.0, 120.0), half_size_px=5)

@@ -22,6 +22,9 @@ import numba
 import numpy as np
 
 OK, LOW_SCORE, AMBIGUOUS = 0, 1, 2
+# the best candidate is on the score grid's outer ring, which exists only where the image border cut it:
+# the scores beyond it are unknown, so it may be the slope of a peak outside the image
+PEAK_AT_BORDER = 9
 
 
 @numba.njit(cache=True, nogil=True)
@@ -93,8 +96,16 @@ def select_match(
     The second peak is the best candidate that is a 3x3 local maximum of the whole grid and lies
     farther than ``exclusion_radius_px`` from the best.
 
+    The grid holds a one-pixel ring around the candidates unless the image border cut it off; a
+    best candidate on the grid's outer ring is therefore at the image border, where the scores
+    beyond it are unknown. It is refused (PEAK_AT_BORDER): taken, it is the last row or column
+    where the template fits, not the point, and a point leaving the image (ground points leave
+    by the bottom row as the vehicle drives forward) would be measured short of where it is, by
+    up to the distance it has left the usable image. On ``paper`` seed 1, 472 of 211 000 matches
+    had their true position past that row and were off by -1.09 px on average, all upwards.
+
     Returns ``(status, i_best, j_best, best, second, off_u, off_v)``; ``best`` and ``second`` are
-    NaN when there is none, the offsets 0 unless the status is OK.
+    NaN when there is none (``second`` also for PEAK_AT_BORDER), the offsets 0 unless the status is OK.
     """
     n_rows, n_cols = scores.shape
     inside = np.zeros((n_rows, n_cols), dtype=np.bool_)
@@ -126,6 +137,8 @@ def select_match(
         return LOW_SCORE, -1, -1, np.nan, np.nan, 0.0, 0.0
     if not best >= min_score:
         return LOW_SCORE, i_best, j_best, best, np.nan, 0.0, 0.0
+    if i_best == 0 or j_best == 0 or i_best == n_rows - 1 or j_best == n_cols - 1:
+        return PEAK_AT_BORDER, i_best, j_best, best, np.nan, 0.0, 0.0
 
     second = np.nan
     r2 = exclusion_radius_px * exclusion_radius_px
@@ -266,7 +279,7 @@ def select_matches(
         )  # fmt: skip
         out_status[k] = s
         score[k] = best
-        if s == LOW_SCORE:
+        if s == LOW_SCORE or s == PEAK_AT_BORDER:
             continue
         second[k] = sec
         if s == OK:

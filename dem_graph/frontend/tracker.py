@@ -33,6 +33,7 @@ from dem_graph.frontend.match_kernel import (
     LOW_TEXTURE,
     OK,
     OUT_OF_IMAGE,
+    PEAK_AT_BORDER,
     SEARCH,
     SEARCH_TOO_LARGE,
     TEXTURE_BORDERLINE,
@@ -77,6 +78,7 @@ class TrackStatus(enum.Enum):
     LOW_TEXTURE = "low_texture"  # the (warped) template is too flat to be matched
     LOW_SCORE = "low_score"  # no candidate in the region reaches min_score
     AMBIGUOUS = "ambiguous"  # a second peak in the region scores nearly as well as the best
+    PEAK_AT_BORDER = "peak_at_border"  # the best candidate is at the image border: the peak may lie beyond it
 
 
 @dataclass(frozen=True)
@@ -126,7 +128,9 @@ _STATUS_OF_CODE = {
     OUT_OF_IMAGE: TrackStatus.OUT_OF_IMAGE,
     SEARCH_TOO_LARGE: TrackStatus.SEARCH_TOO_LARGE,
     LOW_TEXTURE: TrackStatus.LOW_TEXTURE,
+    PEAK_AT_BORDER: TrackStatus.PEAK_AT_BORDER,
 }
+_SEARCHED = np.array([OK, LOW_SCORE, AMBIGUOUS, PEAK_AT_BORDER], dtype=np.int8)  # codes of points whose region was searched
 _NO_COVARIANCE = np.zeros((0, 2, 2))
 
 
@@ -386,6 +390,8 @@ class PatchTracker:
             return TrackResult(TrackStatus.LOW_SCORE, None, best, math.nan, searched)
         if status == AMBIGUOUS:
             return TrackResult(TrackStatus.AMBIGUOUS, None, best, second, searched)
+        if status == PEAK_AT_BORDER:
+            return TrackResult(TrackStatus.PEAK_AT_BORDER, None, best, math.nan, searched)
         uv_match = np.array([u_lo + j_best + off_u, v_lo + i_best + off_v])
         return TrackResult(TrackStatus.OK, uv_match, best, second, searched)
 
@@ -457,5 +463,5 @@ class PatchTracker:
         scores = np.concatenate(grids) if grids else np.zeros(0, dtype=np.float32)
         select = np.array([S_px2 is not None, cfg.min_score, cfg.exclusion_radius_px, cfg.ambiguity_margin, cfg.subpixel], dtype=float)
         status, uv_match, score, second = select_matches(status, box, ellipse, uv, scores, offsets, gamma, select)
-        half_sizes = np.where((status <= AMBIGUOUS)[:, None], box[:, :2], 0)
+        half_sizes = np.where(np.isin(status, _SEARCHED)[:, None], box[:, :2], 0)
         return TrackBatch(status, uv_match, score, second, half_sizes)
