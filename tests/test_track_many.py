@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from dem_graph.datasets.events import CameraFrame
-from dem_graph.frontend.match_kernel import AMBIGUOUS, LOW_SCORE, PEAK_AT_BORDER, select_match
+from dem_graph.frontend.match_kernel import AMBIGUOUS, LOW_SCORE, PEAK_AT_BORDER, PEAK_OUTSIDE_GATE, select_match
 from dem_graph.frontend.tracker import PatchTracker, TrackBatch, TrackResult, TrackStatus
 from dem_graph.pipeline import RunConfig, run_estimator
 
@@ -72,14 +72,16 @@ def _reference_track(tracker: PatchTracker, image, template, uv_pred_px, S_px2=N
         return TrackResult(TrackStatus.LOW_SCORE, None, best, math.nan, searched)
     if status == AMBIGUOUS:
         return TrackResult(TrackStatus.AMBIGUOUS, None, best, second, searched)
-    if status == PEAK_AT_BORDER:  # added with the border test in select_match
+    if status == PEAK_AT_BORDER:  # added with the peak tests in select_match
         return TrackResult(TrackStatus.PEAK_AT_BORDER, None, best, math.nan, searched)
+    if status == PEAK_OUTSIDE_GATE:
+        return TrackResult(TrackStatus.PEAK_OUTSIDE_GATE, None, best, math.nan, searched)
     return TrackResult(TrackStatus.OK, np.array([u_lo + j_best + off_u, v_lo + i_best + off_v]), best, second, searched)
 
 
 def _reference_track_many(tracker, image, templates, uv_pred_px, S_px2=None, half_size_px=None, track=_reference_track) -> TrackBatch:
     """``track_many`` as a loop over the reference (or another one-point ``track``), its results as a :class:`TrackBatch`."""
-    code = {TrackStatus.OK: 0, TrackStatus.LOW_SCORE: 1, TrackStatus.AMBIGUOUS: 2, TrackStatus.OUT_OF_IMAGE: 3, TrackStatus.SEARCH_TOO_LARGE: 4, TrackStatus.LOW_TEXTURE: 5, TrackStatus.PEAK_AT_BORDER: 9}
+    code = {TrackStatus.OK: 0, TrackStatus.LOW_SCORE: 1, TrackStatus.AMBIGUOUS: 2, TrackStatus.OUT_OF_IMAGE: 3, TrackStatus.SEARCH_TOO_LARGE: 4, TrackStatus.LOW_TEXTURE: 5, TrackStatus.PEAK_AT_BORDER: 9, TrackStatus.PEAK_OUTSIDE_GATE: 10}
     res = [
         track(tracker, image, templates[k], uv_pred_px[k], None if S_px2 is None else S_px2[k], half_size_px)
         for k in range(len(templates))

@@ -34,6 +34,7 @@ from dem_graph.frontend.match_kernel import (
     OK,
     OUT_OF_IMAGE,
     PEAK_AT_BORDER,
+    PEAK_OUTSIDE_GATE,
     SEARCH,
     SEARCH_TOO_LARGE,
     TEXTURE_BORDERLINE,
@@ -79,6 +80,7 @@ class TrackStatus(enum.Enum):
     LOW_SCORE = "low_score"  # no candidate in the region reaches min_score
     AMBIGUOUS = "ambiguous"  # a second peak in the region scores nearly as well as the best
     PEAK_AT_BORDER = "peak_at_border"  # the best candidate is at the image border: the peak may lie beyond it
+    PEAK_OUTSIDE_GATE = "peak_outside_gate"  # a candidate just outside the gate scores higher than the best inside
 
 
 @dataclass(frozen=True)
@@ -129,8 +131,9 @@ _STATUS_OF_CODE = {
     SEARCH_TOO_LARGE: TrackStatus.SEARCH_TOO_LARGE,
     LOW_TEXTURE: TrackStatus.LOW_TEXTURE,
     PEAK_AT_BORDER: TrackStatus.PEAK_AT_BORDER,
+    PEAK_OUTSIDE_GATE: TrackStatus.PEAK_OUTSIDE_GATE,
 }
-_SEARCHED = np.array([OK, LOW_SCORE, AMBIGUOUS, PEAK_AT_BORDER], dtype=np.int8)  # codes of points whose region was searched
+_SEARCHED = np.array([OK, LOW_SCORE, AMBIGUOUS, PEAK_AT_BORDER, PEAK_OUTSIDE_GATE], dtype=np.int8)  # codes of points whose region was searched
 _NO_COVARIANCE = np.zeros((0, 2, 2))
 
 
@@ -390,8 +393,8 @@ class PatchTracker:
             return TrackResult(TrackStatus.LOW_SCORE, None, best, math.nan, searched)
         if status == AMBIGUOUS:
             return TrackResult(TrackStatus.AMBIGUOUS, None, best, second, searched)
-        if status == PEAK_AT_BORDER:
-            return TrackResult(TrackStatus.PEAK_AT_BORDER, None, best, math.nan, searched)
+        if status == PEAK_AT_BORDER or status == PEAK_OUTSIDE_GATE:
+            return TrackResult(_STATUS_OF_CODE[status], None, best, math.nan, searched)
         uv_match = np.array([u_lo + j_best + off_u, v_lo + i_best + off_v])
         return TrackResult(TrackStatus.OK, uv_match, best, second, searched)
 
