@@ -65,7 +65,7 @@ def _reference_track(tracker: PatchTracker, image, template, uv_pred_px, S_px2=N
     a, b, c = S_inv if S_inv is not None else (1.0, 0.0, 1.0)
     status, i_best, j_best, best, second, off_u, off_v = select_match(
         scores, i0, i1, j0, j1, S_inv is not None, a, b, c, gamma, v_lo + i0 - v_pred, u_lo + j0 - u_pred, cv - v_lo, cu - u_lo,
-        cfg.min_score, cfg.exclusion_radius_px, cfg.ambiguity_margin, cfg.subpixel,
+        cfg.min_score, cfg.exclusion_radius_px, cfg.ambiguity_margin, cfg.subpixel, cfg.refuse_peak_outside_gate,
     )  # fmt: skip
     searched = (half_u, half_v)
     if status == LOW_SCORE:
@@ -174,7 +174,8 @@ def test_track_many_equals_the_per_point_reference(seed, warped):
     pred, S = pred[keep], S[keep]
     rng = np.random.default_rng(seed)
     tpl[20:23] = 100 + rng.normal(0.0, [[[1.0]], [[2.9]], [[0.0]]], (3, 15, 15))  # too flat
-    for config in (TRACKER, PatchTracker(TRACKER.config.model_copy(update=dict(subpixel=False, min_patch_std_dn=0.0)))):
+    strict = PatchTracker(TRACKER.config.model_copy(update=dict(refuse_peak_outside_gate=True)))
+    for config in (TRACKER, PatchTracker(TRACKER.config.model_copy(update=dict(subpixel=False, min_patch_std_dn=0.0))), strict):
         new = config.track_many(B, tpl, pred, S_px2=S)
         _assert_same(new, _reference_track_many(config, B, tpl, pred, S_px2=S))
         # the one-point `track` (PTPM's) gives the same
@@ -191,6 +192,7 @@ def test_track_many_equals_the_per_point_reference(seed, warped):
             _assert_same(config.track_many(B_b, tpl_b, pred_b, half_size_px=4), _reference_track_many(config, B_b, tpl_b, pred_b, half_size_px=4, track=track))
     # every outcome occurs
     statuses = set(TRACKER.track_many(B, tpl, pred, S_px2=S).statuses()) | set(TRACKER.track_many(B, tpl, pred, half_size_px=41).statuses())
+    statuses |= set(strict.track_many(B, tpl, pred, S_px2=S).statuses())
     statuses |= set(TRACKER.track_many(B_b, tpl_b, pred_b, half_size_px=4).statuses())
     assert statuses == set(TrackStatus)
     # a template whose spread is the minimum, to rounding: decided as cv2.meanStdDev decides it

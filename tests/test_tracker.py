@@ -322,28 +322,34 @@ def test_a_point_past_the_last_usable_row_or_column_is_refused_not_clamped():
 
 
 def test_a_peak_outside_the_gate_is_refused_not_taken_at_its_edge():
-    """Truth more than half a pixel past the search region's last candidate: a candidate just outside
-    (in the grid's one-pixel ring) scores higher than every one inside, and the match is refused
-    (PEAK_OUTSIDE_GATE). Taken, it is the edge candidate, off towards the prediction: before the
-    refusal, 74 of this test's 105 points past the region were matched, 0.23 to 2.7 px from the
-    truth. Truths inside the region are matched to 0.15 px."""
+    """With ``refuse_peak_outside_gate``: truth more than half a pixel past the search region's last
+    candidate, a candidate just outside (in the grid's one-pixel ring) scores higher than every one
+    inside, and the match is refused (PEAK_OUTSIDE_GATE). Taken (the default), it is the edge
+    candidate, off towards the prediction: 74 of this test's 105 points past the region are matched,
+    0.23 to 2.7 px from the truth. Truths inside the region are matched to 0.15 px either way."""
     A = _texture()
     B = _add_noise(_translate(A, SHIFT_PX), 1.0, np.random.default_rng(5))
     rng = np.random.default_rng(6)
     half = 2
-    refused = matched = 0
+    strict = PatchTracker(TRACKER.config.model_copy(update=dict(refuse_peak_outside_gate=True)))
+    refused = matched = taken = 0
     for p in _points(150, 7):
         q = p + SHIFT_PX
         pred = q + rng.uniform(-4.5, 4.5, 2)
-        r = _track_shifted(TRACKER, A, B, p, pred, half_size_px=half)
+        default = _track_shifted(TRACKER, A, B, p, pred, half_size_px=half)
+        r = _track_shifted(strict, A, B, p, pred, half_size_px=half)
         past = np.max(np.abs(q - np.floor(pred + 0.5))) - half  # how far the truth is past the last candidate
         if past > 0.7:
             assert not r.ok and r.status in (TrackStatus.PEAK_OUTSIDE_GATE, TrackStatus.LOW_SCORE), (p, pred, r)
             refused += r.status is TrackStatus.PEAK_OUTSIDE_GATE
+            if default.ok:  # the edge candidate: towards the prediction, short of the truth
+                assert np.abs(default.uv_px - q).max() > 0.2, (p, pred, default)
+                taken += 1
         elif past < 0.3:
             assert r.ok and np.abs(r.uv_px - q).max() < 0.15, (p, pred, r)
+            assert default.ok and np.array_equal(default.uv_px, r.uv_px)
             matched += 1
-    assert refused >= 30 and matched >= 30, (refused, matched)
+    assert refused >= 30 and matched >= 30 and taken >= 30, (refused, matched, taken)
 
 
 def test_flat_template_is_low_texture():

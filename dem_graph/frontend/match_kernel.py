@@ -89,6 +89,7 @@ def select_match(
     exclusion_radius_px: float,
     ambiguity_margin: float,
     subpixel: bool,
+    refuse_outside_gate: bool = False,
 ):
     """Pick the match in the score grid ``scores`` (row i, column j).
 
@@ -106,9 +107,11 @@ def select_match(
     up to the distance it has left the usable image. On ``paper`` seed 1, 472 of 211 000 matches
     had their true position past that row and were off by -1.09 px on average, all upwards.
 
-    Likewise a best candidate with a neighbour scoring higher (necessarily outside the gate, in the
-    ring) is refused (PEAK_OUTSIDE_GATE): the peak is outside the gate, and the candidate on the
-    gate's edge is off towards the prediction (tests/test_tracker.py: 0.23-2.7 px when taken).
+    With ``refuse_outside_gate``, a best candidate with a neighbour scoring higher (necessarily
+    outside the gate, in the ring) is refused too (PEAK_OUTSIDE_GATE): the peak is outside the
+    gate, and the candidate on the gate's edge is off towards the prediction (tests/test_tracker.py:
+    0.23-2.7 px when taken). Off by default: an estimator whose gate is too tight then loses the
+    matches (docs/isam2_design.md, "Where the row bias came from").
 
     Returns ``(status, i_best, j_best, best, second, off_u, off_v)``; ``best`` and ``second`` are
     NaN when there is none (``second`` also for PEAK_AT_BORDER), the offsets 0 unless the status is OK.
@@ -145,10 +148,11 @@ def select_match(
         return LOW_SCORE, i_best, j_best, best, np.nan, 0.0, 0.0
     if i_best == 0 or j_best == 0 or i_best == n_rows - 1 or j_best == n_cols - 1:
         return PEAK_AT_BORDER, i_best, j_best, best, np.nan, 0.0, 0.0
-    for di in range(-1, 2):
-        for dj in range(-1, 2):
-            if scores[i_best + di, j_best + dj] > best:
-                return PEAK_OUTSIDE_GATE, i_best, j_best, best, np.nan, 0.0, 0.0
+    if refuse_outside_gate:
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                if scores[i_best + di, j_best + dj] > best:
+                    return PEAK_OUTSIDE_GATE, i_best, j_best, best, np.nan, 0.0, 0.0
 
     second = np.nan
     r2 = exclusion_radius_px * exclusion_radius_px
@@ -262,13 +266,14 @@ def select_matches(
 ):
     """:func:`select_match` for every point whose status is SEARCH; its score grid (rows ``v_lo..v_hi``,
     columns ``u_lo..u_hi`` of ``box``) is ``scores[offsets[k]:]``, row-major. ``params``: use the
-    ellipse (1.0) or the square, min score, exclusion radius, ambiguity margin, sub-pixel (1.0).
+    ellipse (1.0) or the square, min score, exclusion radius, ambiguity margin, sub-pixel (1.0),
+    refuse a peak outside the gate (1.0).
 
     Returns the final ``status`` (n,) int8, the matches ``uv`` (n,2) (NaN unless OK), ``score`` and
     ``second`` (n,) (NaN when not computed)."""
     n = status.shape[0]
     use_ellipse = params[0] != 0.0
-    min_score, exclusion, margin, subpixel = params[1], params[2], params[3], params[4] != 0.0
+    min_score, exclusion, margin, subpixel, refuse_outside = params[1], params[2], params[3], params[4] != 0.0, params[5] != 0.0
     out_status = status.copy()
     uv = np.full((n, 2), np.nan)
     score = np.full(n, np.nan)
@@ -285,7 +290,7 @@ def select_matches(
         j0, j1 = max(cu - half_u, u_lo) - u_lo, min(cu + half_u, u_hi) - u_lo + 1
         s, i_best, j_best, best, sec, off_u, off_v = select_match(
             grid, i0, i1, j0, j1, use_ellipse, ellipse[k, 0], ellipse[k, 1], ellipse[k, 2], gamma,
-            v_lo + i0 - uv_pred[k, 1], u_lo + j0 - uv_pred[k, 0], cv - v_lo, cu - u_lo, min_score, exclusion, margin, subpixel,
+            v_lo + i0 - uv_pred[k, 1], u_lo + j0 - uv_pred[k, 0], cv - v_lo, cu - u_lo, min_score, exclusion, margin, subpixel, refuse_outside,
         )  # fmt: skip
         out_status[k] = s
         score[k] = best

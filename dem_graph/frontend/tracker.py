@@ -65,6 +65,11 @@ class TrackerConfig(StrictModel):
         0.99, gt=0, lt=1, description="probability of the chi-square gate (2 dof) on the innovation, dimensionless"
     )
     max_search_half_size_px: int = Field(40, ge=0, description="a search region with a larger half size on either axis is refused, pixels")
+    refuse_peak_outside_gate: bool = Field(
+        False,
+        description="refuse a match when a candidate just outside the gate scores higher than the best inside (the peak is outside the gate); "
+        "off: the best inside is taken, off towards the prediction (docs/isam2_design.md)",
+    )
     subpixel: bool = Field(
         True, description="refine the match to sub-pixel by a quadratic fit of the scores around the peak (offset at most 0.5 px per axis)"
     )
@@ -80,7 +85,7 @@ class TrackStatus(enum.Enum):
     LOW_SCORE = "low_score"  # no candidate in the region reaches min_score
     AMBIGUOUS = "ambiguous"  # a second peak in the region scores nearly as well as the best
     PEAK_AT_BORDER = "peak_at_border"  # the best candidate is at the image border: the peak may lie beyond it
-    PEAK_OUTSIDE_GATE = "peak_outside_gate"  # a candidate just outside the gate scores higher than the best inside
+    PEAK_OUTSIDE_GATE = "peak_outside_gate"  # refuse_peak_outside_gate: a candidate just outside the gate scores higher than the best inside
 
 
 @dataclass(frozen=True)
@@ -387,6 +392,7 @@ class PatchTracker:
             cfg.exclusion_radius_px,
             cfg.ambiguity_margin,
             cfg.subpixel,
+            cfg.refuse_peak_outside_gate,
         )
         searched = (half_u, half_v)
         if status == LOW_SCORE:
@@ -464,7 +470,9 @@ class PatchTracker:
             size += grid.size
             grids.append(grid.ravel())
         scores = np.concatenate(grids) if grids else np.zeros(0, dtype=np.float32)
-        select = np.array([S_px2 is not None, cfg.min_score, cfg.exclusion_radius_px, cfg.ambiguity_margin, cfg.subpixel], dtype=float)
+        select = np.array(
+            [S_px2 is not None, cfg.min_score, cfg.exclusion_radius_px, cfg.ambiguity_margin, cfg.subpixel, cfg.refuse_peak_outside_gate], dtype=float
+        )
         status, uv_match, score, second = select_matches(status, box, ellipse, uv, scores, offsets, gamma, select)
         half_sizes = np.where(np.isin(status, _SEARCHED)[:, None], box[:, :2], 0)
         return TrackBatch(status, uv_match, score, second, half_sizes)
