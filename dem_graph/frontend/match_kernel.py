@@ -114,7 +114,7 @@ def select_match(
     matches (docs/isam2_design.md, "Where the row bias came from").
 
     Returns ``(status, i_best, j_best, best, second, off_u, off_v)``; ``best`` and ``second`` are
-    NaN when there is none (``second`` also for PEAK_AT_BORDER), the offsets 0 unless the status is OK.
+    NaN when there is none (``second`` also for the two PEAK_ refusals), the offsets 0 unless the status is OK.
     """
     n_rows, n_cols = scores.shape
     inside = np.zeros((n_rows, n_cols), dtype=np.bool_)
