@@ -294,9 +294,7 @@ def select_matches(
         )  # fmt: skip
         out_status[k] = s
         score[k] = best
-        if s == LOW_SCORE or s == PEAK_AT_BORDER or s == PEAK_OUTSIDE_GATE:
-            continue
-        second[k] = sec
+        second[k] = sec  # NaN unless OK or AMBIGUOUS
         if s == OK:
             uv[k, 0] = u_lo + j_best + off_u
             uv[k, 1] = v_lo + i_best + off_v

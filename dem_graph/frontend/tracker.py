@@ -395,12 +395,8 @@ class PatchTracker:
             cfg.refuse_peak_outside_gate,
         )
         searched = (half_u, half_v)
-        if status == LOW_SCORE:
-            return TrackResult(TrackStatus.LOW_SCORE, None, best, math.nan, searched)
-        if status == AMBIGUOUS:
-            return TrackResult(TrackStatus.AMBIGUOUS, None, best, second, searched)
-        if status == PEAK_AT_BORDER or status == PEAK_OUTSIDE_GATE:
-            return TrackResult(_STATUS_OF_CODE[status], None, best, math.nan, searched)
+        if status != OK:  # select_match's second is NaN unless the status is OK or AMBIGUOUS
+            return TrackResult(_STATUS_OF_CODE[status], None, best, second, searched)
         uv_match = np.array([u_lo + j_best + off_u, v_lo + i_best + off_v])
         return TrackResult(TrackStatus.OK, uv_match, best, second, searched)
 
