@@ -30,9 +30,9 @@ def recorded(smoke_log):
     setups, messages, results = [], [], []
     real_init, real_send = InProcessGraph.__init__, InProcessGraph.send
 
-    def init(self, setup):
+    def init(self, setup, delay=0):
         setups.append(setup)
-        real_init(self, setup)
+        real_init(self, setup, delay)
 
     def send(self, message):
         real_send(self, message)
@@ -216,6 +216,55 @@ def test_a_run_with_the_graph_in_a_second_process(smoke_log):
     assert m.trajectory.ate_rmse_m < 0.03
     assert m.trajectory_smoothed.ate_rmse_m < 0.03
     assert "graph_lag_keyframes_median" in m.events
+
+
+def test_an_in_process_graph_can_hand_its_results_back_late(recorded):
+    """``delay`` keyframes late, in order, the same results; the rest at the end."""
+    setup, messages, expected = recorded
+    graph = InProcessGraph(setup, delay=3)
+    got = []
+    for i, message in enumerate(messages[:10]):
+        graph.send(message)
+        back = graph.results()
+        assert [r.k for r in back] == ([] if i < 3 else [expected[i - 3].k])
+        got += back
+    pending, _ = graph.finish()
+    got += pending
+    assert [r.k for r in got] == [r.k for r in expected[:10]]
+    for r, want in zip(got, expected):
+        for k in want.poses:
+            np.testing.assert_array_equal(r.poses[k], want.poses[k])
+
+
+@pytest.fixture(scope="module")
+def paper_5m():
+    """The first 5 m of `paper` (800x600, 83 frames), every event in memory."""
+    from dem_graph.datasets.memory import InMemorySequence
+    from dem_graph.sim.scenarios import scenario
+    from dem_graph.sim.simulator import SimulatedSequence
+
+    return InMemorySequence.record(SimulatedSequence.from_config(scenario("paper", seed=1, length_m=5.0)))
+
+
+def test_late_results_do_not_turn_good_matches_into_outliers(paper_5m):
+    """The graph's results 6 keyframes late (as from a second process, but reproducibly): the live
+    points keep the steps of the observations sent since, so the pose update rejects no more matches
+    as outliers than in-process (the simulation injects none; the tracker's own tails are 0.10 % of
+    the matches in-process). Bound: 0.5 %. Measured: 0.24 % with the steps kept, 2.25 % when a late
+    result set the points back to the graph's older estimate (the code before; 1.7-2.2 % on the
+    whole of `paper` with the second process). The trajectory stays within 25 % of the in-process
+    ATE (measured 3.3 mm against 3.2 mm; 4.5 mm before)."""
+
+    def run(delay):
+        r = run_estimator(paper_5m, RunConfig.model_validate({"estimator": "isam2", "isam2": {"graph_delay_keyframes": delay}}))
+        assert r.error is None
+        return r.metrics
+
+    now, late = run(0), run(6)
+    assert late.events["graph_lag_keyframes_median"] == 6
+    assert now.tracking.outlier_fraction_of_matched < 0.005
+    assert late.tracking.outlier_fraction_of_matched < 0.005
+    assert late.trajectory.ate_rmse_m < 1.25 * now.trajectory.ate_rmse_m
 
 
 # --- the graph process ends with its run ------------------------------------------------------

@@ -205,20 +205,27 @@ class GraphWorker:
 
 
 class InProcessGraph:
-    """The graph in the estimator's process: each message is applied when sent."""
+    """The graph in the estimator's process: each message is applied when sent, and its result is
+    handed back at once, or ``delay`` keyframes later (a second process's lag, reproducibly)."""
 
-    def __init__(self, setup: GraphSetup):
+    def __init__(self, setup: GraphSetup, delay: int = 0):
         self.worker = GraphWorker(setup)
+        self.delay = delay
         self._results: list[GraphResult] = []
+        self._held: list[GraphResult] = []  # results not yet handed back, oldest first
 
     def send(self, message) -> None:
-        self._results.append(self.worker.apply([message]))
+        self._held.append(self.worker.apply([message]))
+        while len(self._held) > self.delay:
+            self._results.append(self._held.pop(0))
 
     def results(self) -> list[GraphResult]:
         out, self._results = self._results, []
         return out
 
     def finish(self) -> tuple[list[GraphResult], tuple[dict[int, np.ndarray], dict[int, np.ndarray]]]:
+        self._results.extend(self._held)
+        self._held = []
         return self.results(), self.worker.final_estimates()
 
     def close(self) -> None:

@@ -155,7 +155,7 @@ class Isam2Slam(FrameDrivenEstimator):
         graph_s = 0.0
         if is_keyframe:
             tg = time.perf_counter()
-            observations = filt.keyframe_observations(m)
+            landmarks, uv, sigma_px, point_steps = filt.keyframe_observations(m)
             graph_s = time.perf_counter() - tg
         tm = time.perf_counter()
         filt.end_frame(event.t_s)
@@ -167,7 +167,7 @@ class Isam2Slam(FrameDrivenEstimator):
             # no point starts in a frame without texture; its scans wait for the next frame
             new = [] if event.textureless else filt.new_points(event.image, event.t_s, self._scans.take_until(event.t_s), live_uv)
             tn = time.perf_counter()
-            self._send_keyframe(event.t_s, observations, new)
+            self._send_keyframe(event.t_s, (landmarks, uv, sigma_px), new, point_steps)
             graph_s += time.perf_counter() - tn
             map_s += tn - tg
         tg = time.perf_counter()
@@ -210,9 +210,9 @@ class Isam2Slam(FrameDrivenEstimator):
                 self._batch.add_link(int(old[j]), new)
         return old
 
-    def _send_keyframe(self, t_s: float, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint]) -> None:
+    def _send_keyframe(self, t_s: float, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint], point_steps: np.ndarray | None = None) -> None:
         """The keyframe to the graph; its new points join the live ones (and the batch's log)."""
-        started = self._client.send_keyframe(t_s, self._filter.T, self._filter.P_loc, observations, new)
+        started = self._client.send_keyframe(t_s, self._filter.T, self._filter.P_loc, observations, new, point_steps)
         if started is not None:
             landmarks, X_world, Sigma_world = started
             self.live.add(np.array([p.point_id for p in new]), landmarks, X_world, Sigma_world)

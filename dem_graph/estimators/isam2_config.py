@@ -52,6 +52,12 @@ class Isam2Options(StrictModel):
         description="graph_process: keyframes the front end may run ahead of the graph's newest result before a frame waits for it; "
         "more keep frames short while an update runs long, at the price of later corrections",
     )
+    graph_delay_keyframes: int = Field(
+        0,
+        ge=0,
+        description="graph in this process only: hand each result back this many keyframes late, as a second process's come back, "
+        "but reproducibly (studies and tests of that lag); 0: in the frame that sent it",
+    )
     batch_keyframe_every: int = Field(
         5,
         ge=1,

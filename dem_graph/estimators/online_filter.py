@@ -147,9 +147,9 @@ class OnlineFilter:
             self.v_body = local(T_prev, self.T) / dt_s
             self._speed_mps = float(np.linalg.norm(self.v_body[3:]))
 
-    def keyframe_observations(self, m: FrameMatches) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def keyframe_observations(self, m: FrameMatches) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """This keyframe's inlier observations of landmarks still in the graph, as (landmarks,
-        pixels, sigma_px). (A point whose landmark the graph has marginalised was archived when the
+        pixels, sigma_px), and the step (m,3, metres) each gave its point. (A point whose landmark the graph has marginalised was archived when the
         front end heard of it; the graph skips any it hears of first.)
 
         Each also updates its point at once, the pose held fixed (one Gauss-Newton step of the
@@ -165,8 +165,9 @@ class OnlineFilter:
         live.n_since_keyframe[idx] = 0
         Ht = np.swapaxes(H_point, 1, 2) / (sigma**2)[:, None, None]
         live.info[idx] += Ht @ H_point
-        live.X[idx] += np.linalg.solve(live.info[idx], np.einsum("nij,nj->ni", Ht, residual_px)[..., None])[..., 0]
-        return live.landmark[idx].copy(), uv.copy(), sigma
+        dX = np.linalg.solve(live.info[idx], np.einsum("nij,nj->ni", Ht, residual_px)[..., None])[..., 0]
+        live.X[idx] += dX
+        return live.landmark[idx].copy(), uv.copy(), sigma, dX
 
     def end_frame(self, t_s: float) -> None:
         """The frame's pose joins the recent poses (the spline that places the next scans)."""
