@@ -236,6 +236,11 @@ def test_an_in_process_graph_can_hand_its_results_back_late(recorded):
             np.testing.assert_array_equal(r.poses[k], want.poses[k])
 
 
+def test_a_delay_for_a_graph_in_a_second_process_is_refused():
+    with pytest.raises(ValueError, match="graph_delay_keyframes holds back the results of the graph in this process"):
+        RunConfig.model_validate({"estimator": "isam2", "isam2": {"graph_process": True, "graph_delay_keyframes": 3}})
+
+
 @pytest.fixture(scope="module")
 def paper_5m():
     """The first 5 m of `paper` (800x600, 83 frames), every event in memory."""

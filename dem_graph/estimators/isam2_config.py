@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from dem_graph.config_types import StrictModel
 from dem_graph.estimators.settings import SharedSettings
@@ -66,6 +66,15 @@ class Isam2Options(StrictModel):
     )
     batch_max_iterations: int = Field(10, ge=1, description="isam2-batch: Levenberg-Marquardt iterations at most")
     batch_relative_error_tol: float = Field(1e-3, gt=0, description="isam2-batch: stop when the error falls by less than this fraction")
+
+    @model_validator(mode="after")
+    def _delay_needs_the_graph_in_process(self):
+        if self.graph_process and self.graph_delay_keyframes:
+            raise ValueError(
+                "graph_delay_keyframes holds back the results of the graph in this process; with graph_process: true the lag is the second "
+                "process's own: set one of the two"
+            )
+        return self
 
 
 class Isam2Config(SharedSettings, Isam2Options):
