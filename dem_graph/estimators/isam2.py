@@ -210,7 +210,7 @@ class Isam2Slam(FrameDrivenEstimator):
                 self._batch.add_link(int(old[j]), new)
         return old
 
-    def _send_keyframe(self, t_s: float, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint], point_steps: np.ndarray | None = None) -> None:
+    def _send_keyframe(self, t_s: float, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint], point_steps: np.ndarray) -> None:
         """The keyframe to the graph; its new points join the live ones (and the batch's log)."""
         started = self._client.send_keyframe(t_s, self._filter.T, self._filter.P_loc, observations, new, point_steps)
         if started is not None:

@@ -149,8 +149,9 @@ class OnlineFilter:
 
     def keyframe_observations(self, m: FrameMatches) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """This keyframe's inlier observations of landmarks still in the graph, as (landmarks,
-        pixels, sigma_px), and the step (m,3, metres) each gave its point. (A point whose landmark the graph has marginalised was archived when the
-        front end heard of it; the graph skips any it hears of first.)
+        pixels, sigma_px), and the step (m,3, metres) each gave its point. (A point whose landmark
+        the graph has marginalised was archived when the front end heard of it; the graph skips any
+        it hears of first.)
 
         Each also updates its point at once, the pose held fixed (one Gauss-Newton step of the
         point's information form), so that a point's estimate and covariance stay together until
