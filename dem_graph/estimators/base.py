@@ -75,6 +75,8 @@ class EstimatorResult:
     # other estimates of every frame's pose, by name (a file stem): for the graph estimator, the
     # trajectory as smoothed at the end of the run, next to the per-frame one
     extra_poses: dict[str, np.ndarray] = field(default_factory=dict)
+    # the graph estimator: each graph update's time by phase (its key: "total", "solve", "cut", ...), seconds
+    graph_update_s: dict[str, list[float]] = field(default_factory=dict)
 
     def trajectory(self) -> Trajectory:
         return Trajectory.from_poses(np.array([f.t_s for f in self.frames]), np.array([f.T_world_body for f in self.frames]))

@@ -120,6 +120,9 @@ class GraphClient:
             rig.camera_model, np.array(rig.T_body_cam, dtype=float), c.frontend.camera_point_sigma_px, c.split_link_sigma_m, c.robust,
         )  # fmt: skip
         self._graph = ProcessGraph(setup, c.graph_max_lag) if c.graph_process else InProcessGraph(setup, c.graph_delay_keyframes)
+        self._when_behind = c.graph_when_behind or "merge"
+        # per graph update taken: its time by phase, seconds ("total": the whole update)
+        self.update_phases: dict[str, list[float]] = {}
         self._pose_covariance_every_s = c.pose_covariance_every_s
         self._counters = counters
         self.keyframe_t_s: list[float] = [t_s]
@@ -150,6 +153,23 @@ class GraphClient:
     @property
     def in_process(self) -> bool:
         return isinstance(self._graph, InProcessGraph)
+
+    @property
+    def next_keyframe(self) -> int:
+        """The number the next keyframe sent will have."""
+        return len(self.keyframe_t_s)
+
+    def ready_for_keyframe(self) -> bool:
+        """The graph can take the next keyframe: in this process it always can; in a second process
+        it must be within ``graph_max_lag`` keyframes of it. Past that, with ``graph_when_behind:
+        wait`` the frame waits for the graph; with ``merge`` (the default outside a run replayed as
+        fast as possible) it does not, and the answer is no. The graph's start (a second process
+        imports for a second or more) is always waited for. Results arriving meanwhile are kept for
+        :meth:`results`."""
+        k = self.next_keyframe
+        if not self._graph.started or self._when_behind == "wait":
+            return self._graph.wait_for(k, None)
+        return self._graph.wait_for(k, 0.0)
 
     # --- per frame ---------------------------------------------------------------------------
     def carry(self, U: np.ndarray, Q: np.ndarray, A: np.ndarray | None = None) -> None:
@@ -243,6 +263,8 @@ class GraphClient:
         self.poses.update(r.poses)
         self.points.update(r.points)
         self._graph_lag.append(len(self.keyframe_t_s) - 1 - k)
+        for phase, seconds in {"total": r.worker_s, **r.phases}.items():
+            self.update_phases.setdefault(phase, []).append(seconds)
         correction, C = None, np.eye(4)
         if k in self._sent_T:
             # kept on SE(3): corrections compose, and invert() assumes orthonormal rotations
@@ -319,6 +341,7 @@ class GraphClient:
         if self._graph_lag:
             counters["graph_lag_keyframes_median"] = int(np.median(self._graph_lag))
             counters["graph_lag_keyframes_max"] = int(np.max(self._graph_lag))
+            counters["graph_results_late"] = int(np.count_nonzero(self._graph_lag))  # taken after the next keyframe was sent
 
 
 __all__ = ["GraphClient", "Landmarks", "PoseAnchor"]

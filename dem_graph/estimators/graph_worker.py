@@ -116,6 +116,7 @@ class GraphResult:
     failure: str | None = None  # the update failed: the graph waits for a RestartMessage
     waiting: bool = False  # keyframes that arrived while the graph waited for its restart
     worker_s: float = 0.0  # the graph's time on these messages, seconds
+    phases: dict[str, float] = field(default_factory=dict)  # seconds per phase: factors, solve, estimate, marginal; cut, rebuild (the window's, since the last result)
 
 
 class GraphWorker:
@@ -126,12 +127,16 @@ class GraphWorker:
         self._K = calibration(setup.camera)
         self.graph = KeyframeGraph(setup.T_world_body_0, setup.P0, setup.t0_s, setup.lag_s, setup.relinearize_threshold, setup.relinearize_skip, setup.marginalize_every_s, setup.optimizer)
         self.failed = False
+        self._cut_failure: str | None = None  # the last cut failed and no result has said so yet
+        self._phases_since: dict[str, float] = {}  # the cut's time since the last result, seconds
 
     def apply(self, messages: list) -> GraphResult:
-        """Add the messages' factors in order, then one update, the window's cut when due and the
-        marginal when asked for."""
+        """Add the messages' factors in order, then one update and the marginal when asked for. The
+        window's cut is not made here but after the result has gone (:meth:`cut_if_due`): its time
+        is not the result's wait (it is reported with the next result's phases)."""
         t0 = time.perf_counter()
         g = self.graph
+        phases, self._phases_since = {**self._phases_since, **g.take_phases()}, {}
         want_marginal, pending = False, 0
         for m in messages:
             if isinstance(m, RestartMessage):
@@ -143,7 +148,11 @@ class GraphWorker:
                 self._add_keyframe(m)
                 want_marginal |= m.want_marginal
                 pending += 1
-        result = GraphResult(g.last_keyframe, {}, {})
+        result = GraphResult(g.last_keyframe, {}, {}, phases=phases)
+        result.phases["factors"] = time.perf_counter() - t0 - sum(g.phase_s.values())  # (a restart's update is its own phases')
+        if self._cut_failure is not None:  # the cut after the last result failed: the estimator restarts the graph
+            result.failure, self._cut_failure = self._cut_failure, None
+            return result
         if self.failed:
             result.waiting = True
             return result
@@ -152,8 +161,6 @@ class GraphWorker:
                 # iSAM2 takes one step per update: keyframes that arrive together get as many steps
                 # as they would have had one at a time
                 g.update(iterations=pending)
-            if g.marginalization_due:
-                g.marginalize()
             if want_marginal:
                 result.marginal = g.pose_covariance(g.last_keyframe)
         except GraphUpdateError as exc:
@@ -162,8 +169,25 @@ class GraphWorker:
             result.worker_s = time.perf_counter() - t0
             return result
         result.poses, result.points = g.window_estimates()
+        result.phases.update(g.take_phases())
         result.worker_s = time.perf_counter() - t0
         return result
+
+    def cut_if_due(self) -> bool:
+        """The window's cut, when due (:meth:`KeyframeGraph.marginalize`): made between results, so
+        that no result waits for it. Its time goes with the next result's phases (``cut``: the
+        marginal of what leaves, ``rebuild``: the new iSAM2); a failure is that result's, and the
+        graph waits for a restart. Returns whether it was due."""
+        g = self.graph
+        if self.failed or not g.marginalization_due:
+            return False
+        try:
+            g.marginalize()
+        except GraphUpdateError as exc:
+            self.failed = True
+            self._cut_failure = str(exc)
+        self._phases_since.update(g.take_phases())
+        return True
 
     def _add_keyframe(self, m: KeyframeMessage) -> None:
         g, s = self.graph, self.setup
@@ -216,12 +240,19 @@ class InProcessGraph:
 
     def send(self, message) -> None:
         self._held.append(self.worker.apply([message]))
+        self.worker.cut_if_due()
         while len(self._held) > self.delay:
             self._results.append(self._held.pop(0))
 
     def results(self) -> list[GraphResult]:
         out, self._results = self._results, []
         return out
+
+    started = True  # (the graph is there from the first message)
+
+    def wait_for(self, k: int, timeout_s: float | None) -> bool:
+        """The graph can take keyframe ``k`` (here: always, its results are never missing, only held)."""
+        return True
 
     def finish(self) -> tuple[list[GraphResult], tuple[dict[int, np.ndarray], dict[int, np.ndarray]]]:
         self._results.extend(self._held)
@@ -250,6 +281,7 @@ def _serve(conn) -> None:
         try:
             if messages:
                 conn.send(("result", worker.apply(messages)))
+                worker.cut_if_due()
             if finish:
                 conn.send(("final", worker.final_estimates()))
                 return
@@ -354,6 +386,28 @@ class ProcessGraph:
             self._conn.poll(0.05)  # until a result comes (at most 50 ms: the sending thread may have failed meanwhile)
             self._early.extend(self._arrived())
         self._outbox.put(message)
+
+    @property
+    def started(self) -> bool:
+        """The process has answered its first keyframe (until then it starts: imports, a second or more)."""
+        self._early.extend(self._arrived())
+        return self._answered_k >= 0
+
+    def wait_for(self, k: int, timeout_s: float | None) -> bool:
+        """Whether keyframe ``k`` is within ``max_lag`` keyframes of the newest the graph has answered,
+        waiting at most ``timeout_s`` (None: as long as it takes) for its results to bring it there
+        (they are kept for :meth:`results`)."""
+        deadline = None if timeout_s is None else time.perf_counter() + timeout_s
+        while True:
+            self._early.extend(self._arrived())
+            if k - self._answered_k <= self.max_lag:
+                return True
+            remaining = 0.05 if deadline is None else deadline - time.perf_counter()
+            if remaining <= 0:
+                return False
+            if self._send_failed.is_set():  # the process has ended: the next send says why
+                return True
+            self._conn.poll(min(remaining, 0.05))
 
     def _receive(self):
         try:

@@ -130,6 +130,10 @@ class Isam2Slam(FrameDrivenEstimator):
         filt, client, c = self._filter, self._client, self.config
         timing = {}
         t0 = time.perf_counter()
+        # results that came back since the last frame (a second process's): taken before this frame's search
+        timing["graph_worker"] = self._take_results(client.results())
+        tp = time.perf_counter()
+        graph_s = tp - t0
         if self.frontend.begin_frame(event.t_s, event.textureless):
             self._drop_points()  # after a camera gap: the points it made stale
             if not len(self.live):
@@ -142,9 +146,12 @@ class Isam2Slam(FrameDrivenEstimator):
         # a frame without texture (the reader marked it) is not searched: its pose is the prediction
         m = FrameMatches(np.zeros(0, dtype=int), np.zeros((0, 2))) if event.textureless else filt.track(event.image, event.t_s, T_pred)
         t2 = time.perf_counter()
+        m, T_pred = self._take_results_before_update(m, T_pred, U, timing)
+        t2g = time.perf_counter()
+        graph_s += t2g - t2
         filt.update_pose(T_pred, m, dt)
         t3 = time.perf_counter()
-        timing["prediction"], timing["tracking"], timing["update"] = t1 - t0, t2 - t1, t3 - t2
+        timing["prediction"], timing["tracking"], timing["update"] = t1 - tp, t2 - t1, t3 - t2g
         idx, inlier = m.idx, m.inlier
         split_old = self._split_refreshed(idx)
         self.live.n_since_keyframe[idx[inlier]] += 1
@@ -152,11 +159,16 @@ class Isam2Slam(FrameDrivenEstimator):
             self._batch.add_frame(event.t_s, U, Q, self.live.landmark[idx[inlier]], m.uv[inlier], split_old[inlier])
         self._frames_since_keyframe += 1
         is_keyframe = self._frames_since_keyframe >= c.keyframe_spacing or len(self.live) < c.keyframe_min_live_fraction * c.frontend.max_points
-        graph_s = 0.0
+        if is_keyframe and not client.ready_for_keyframe():
+            # the graph is graph_max_lag keyframes behind (graph_when_behind: merge): this frame's
+            # observations go with the next keyframe (their weight with them), so that no frame waits
+            # for the graph
+            is_keyframe = False
+            self.frontend.counters["keyframes_merged"] += 1
         if is_keyframe:
             tg = time.perf_counter()
-            landmarks, uv, sigma_px, point_steps = filt.keyframe_observations(m)
-            graph_s = time.perf_counter() - tg
+            landmarks, uv, sigma_px, point_steps = filt.keyframe_observations(m, client.next_keyframe)
+            graph_s += time.perf_counter() - tg
         tm = time.perf_counter()
         filt.end_frame(event.t_s)
         self.frontend.end_frame(event.t_s, event.image, event.textureless)
@@ -171,7 +183,7 @@ class Isam2Slam(FrameDrivenEstimator):
             graph_s += time.perf_counter() - tn
             map_s += tn - tg
         tg = time.perf_counter()
-        timing["graph_worker"] = self._take_results(client.results())
+        timing["graph_worker"] += self._take_results(client.results())
         graph_s += time.perf_counter() - tg
         if is_keyframe and client.in_process:
             for hook in self.keyframe_hooks:
@@ -182,6 +194,22 @@ class Isam2Slam(FrameDrivenEstimator):
         record = FrameRecord(event.t_s, filt.T.copy(), client.anchor.pose_covariance(filt.T), len(self.live), int(len(idx)), timing)
         self._frames.append(record)
         return record
+
+    def _take_results_before_update(self, m: FrameMatches, T_pred: np.ndarray, U: np.ndarray, timing: dict) -> tuple[FrameMatches, np.ndarray]:
+        """The graph's results that came back while this frame was searched (a second process's), taken
+        before its pose update: the update then starts from the smoothed keyframe and points. Returns
+        the matches without the points the graph has marginalised, and the prediction moved with the
+        correction."""
+        results = self._client.results()
+        if not results:
+            return m, T_pred
+        ids, T_before = self.live.ids.copy(), self._filter.T.copy()
+        timing["graph_worker"] += self._take_results(results)
+        if len(self.live) != len(ids):
+            m = m.for_points(np.isin(ids, self.live.ids))
+        if not np.array_equal(self._filter.T, T_before):
+            T_pred = self._filter.T @ U
+        return m, T_pred
 
     def _motion_since_last_frame(self, event: CameraFrame) -> tuple[float, np.ndarray, np.ndarray]:
         """The time since the last frame, seconds, and the motion over it with its covariance:
@@ -287,6 +315,7 @@ class Isam2Slam(FrameDrivenEstimator):
             self.name, self._frames, live.ids, lambda i: live.X[i], self._point_covariance_world, archived_xyz=lambda pid: pts[landmark_of[pid]]
         )
         self._client.count(res.counters)
+        res.graph_update_s = {phase: list(seconds) for phase, seconds in self._client.update_phases.items()}
         batch_result = self._batch.result if self._batch is not None else None
         if batch_result is not None:
             return batch_result.apply_to(res, landmark_of)

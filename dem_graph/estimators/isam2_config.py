@@ -15,17 +15,26 @@ class Isam2Options(StrictModel):
     """What only the graph estimator has."""
 
     keyframe_every: int = Field(1, ge=1, description="a keyframe every this many frames (1: every frame a pose of the graph; more is faster and less accurate, docs/isam2_design.md)")
+    observation_every: int = Field(
+        1,
+        ge=1,
+        description="each landmark's observation goes to the graph at every this many keyframes, the landmarks taking turns, and carries the frames "
+        "since its last (sigma_px / sqrt(frames)). An update's cost grows with the square of the keyframes that saw each landmark: 2 makes it three "
+        "times cheaper, but one pixel then stands for two correlated ones, and on 12 m logs the trajectory was up to twice as far off and more "
+        "sensitive to late results (docs/isam2_design.md)",
+    )
     keyframe_min_live_fraction: float = Field(0.8, ge=0, le=1, description="also a keyframe when the live points fall below this fraction of the cap (new points enter at keyframes)")
     lag_s: float = Field(1.5, gt=0, description="fixed lag of the smoother, seconds: older variables are marginalised")
     marginalize_every_s: float = Field(
-        0.5, gt=0, description="the window is cut back to the lag once it spans lag_s + this, seconds (one batch elimination of the window)"
+        0.5, gt=0, description="the window is cut back to the lag once it spans lag_s + this, seconds (one batch elimination of the window, made after a result has gone)"
     )
     relinearize_threshold: float = Field(0.01, gt=0, description="iSAM2 relinearises a variable whose update exceeds this")
     relinearize_skip: int = Field(1, ge=1, description="iSAM2 checks for relinearisation every this many updates")
     optimizer: Literal["dogleg", "gauss_newton"] = Field(
-        "dogleg",
-        description="iSAM2's step: dogleg (a trust region) or plain Gauss-Newton. Nothing but the odometry observes the window's absolute height and tilt, "
-        "and the trust region bounds the steps along them (docs/isam2_design.md)",
+        "gauss_newton",
+        description="iSAM2's step: plain Gauss-Newton, or dogleg (a trust region, which evaluates the whole window's error at every update: a third "
+        "of an update's time). Dogleg was chosen when Gauss-Newton steps oscillated along the window's weakly observed height and tilt; with the "
+        "landmarks ordered before the poses, 24 whole `paper` runs with Gauss-Newton did not (docs/isam2_design.md)",
     )
     keyframe_weighting: bool = Field(
         True, description="a keyframe observation carries the information of the frames that tracked the point since its last keyframe observation (sigma_px / sqrt(n))"
@@ -47,10 +56,16 @@ class Isam2Options(StrictModel):
         "and the graph's results reach the front end one or more keyframes later (a run then depends on the timing); false: each keyframe's update ends in its own frame",
     )
     graph_max_lag: int = Field(
-        10,
+        3,
         ge=1,
-        description="graph_process: keyframes the front end may run ahead of the graph's newest result before a frame waits for it; "
-        "more keep frames short while an update runs long, at the price of later corrections",
+        description="graph_process: keyframes the front end may run ahead of the graph's newest result; beyond, see graph_when_behind",
+    )
+    graph_when_behind: Literal["merge", "wait"] | None = Field(
+        None,
+        description="graph_process: what a frame due to be a keyframe does when the graph is graph_max_lag keyframes behind. merge: it is not made a "
+        "keyframe, its observations go with the next one (counted as keyframes_merged), so that no frame waits for the graph, as on a vehicle; "
+        "wait: it waits for the graph (a log replayed faster than recorded then goes at the graph's pace). Unset: wait in a run that replays its "
+        "log as fast as possible (realtime: false), merge otherwise",
     )
     graph_delay_keyframes: int = Field(
         0,
@@ -81,6 +96,12 @@ class Isam2Config(SharedSettings, Isam2Options):
     """The graph estimator's options with the settings every estimator shares."""
 
     batch: bool = Field(False, description="record every observation and smooth the whole log at the end (isam2-batch)")
+
+    @property
+    def observation_spacing(self) -> int:
+        """Keyframes between a landmark's observations in the graph: ``observation_every``; 1 for the batch's
+        online pass (its keyframes are 5 frames apart already, and the batch has every frame's observations)."""
+        return 1 if self.batch else self.observation_every
 
     @property
     def keyframe_spacing(self) -> int:

@@ -4,7 +4,13 @@ Variables are ``X(k)``, the body pose ``T_world_body`` of keyframe k, and ``L(j)
 position of landmark ``j`` (metres). Each variable carries a timestamp: a keyframe its time, a point
 the time of the last keyframe that observed it.
 
-Updates are incremental (``gtsam.ISAM2``). The window is cut by :meth:`KeyframeGraph.marginalize`,
+Updates are incremental (``gtsam.ISAM2``), with the landmarks ordered before the keyframe poses
+(iSAM2's constrained ordering): by default iSAM2 puts every variable a new factor touches last, so
+the ~150 landmarks a keyframe observes formed one dense clique at the root of the Bayes tree; with the
+poses last, each landmark is a small clique under the poses, and the newest pose sits in the root,
+where its marginal is cheap (docs/isam2_design.md, "The graph keeps up").
+
+The window is cut by :meth:`KeyframeGraph.marginalize`,
 once it spans more than ``lag_s + marginalize_every_s``: the variables older than ``lag_s`` behind
 the newest keyframe are eliminated from the factors that touch them, linearised at the current
 estimate, and what they knew about the rest stays as linear factors (``LinearContainerFactor``);
@@ -20,6 +26,8 @@ a marginalised variable keeps the value it had when it left.
 """
 
 from __future__ import annotations
+
+import time
 
 import gtsam
 import numpy as np
@@ -42,7 +50,7 @@ class KeyframeGraph:
         relinearize_threshold: float = 0.01,
         relinearize_skip: int = 1,
         marginalize_every_s: float = 0.5,
-        optimizer: str = "dogleg",
+        optimizer: str = "gauss_newton",
     ):
         self._params = gtsam.ISAM2Params()
         self._params.setRelinearizeThreshold(relinearize_threshold)
@@ -56,6 +64,7 @@ class KeyframeGraph:
         self.poses: dict[int, np.ndarray] = {}  # keyframe index -> T_world_body, latest estimate
         self.points: dict[int, np.ndarray] = {}  # landmark -> X_world, latest estimate
         self.keyframe_t_s: list[float] = []
+        self.phase_s: dict[str, float] = {}  # seconds spent per phase since the last take_phases()
         self._new_isam()
         self._clear_pending()
         k = self.add_keyframe(t0_s, T_world_body_0)
@@ -65,6 +74,7 @@ class KeyframeGraph:
     def _new_isam(self) -> None:
         self.isam = gtsam.ISAM2(self._params)
         self._factors = gtsam.NonlinearFactorGraph()  # every factor the current iSAM2 holds
+        self._factor_keys: list[frozenset[int]] = []  # the keys of each of them, in the same order
         # the variables in the window with their times, seconds: keyframe -> t, landmark -> t
         self._pose_t: dict[int, float] = {}
         self._point_t: dict[int, float] = {}
@@ -130,22 +140,48 @@ class KeyframeGraph:
         self.add_factor(gtsam.PriorFactorPose3(X(k), T, gtsam.noiseModel.Gaussian.Covariance(np.asarray(P, dtype=float))))
 
     # --- solving ----------------------------------------------------------------------------
+    def _ordering(self, poses) -> gtsam.ISAM2UpdateParams:
+        """iSAM2's update parameters with the keyframe poses ``poses`` eliminated after every landmark."""
+        groups = gtsam.KeyGroupMap()
+        for k in poses:
+            groups.insert2(X(k), 1)  # landmarks: group 0, first
+        params = gtsam.ISAM2UpdateParams()
+        params.constrainedKeys = groups
+        return params
+
+    def _timed(self, phase: str, t0_s: float) -> float:
+        now = time.perf_counter()
+        self.phase_s[phase] = self.phase_s.get(phase, 0.0) + now - t0_s
+        return now
+
+    def take_phases(self) -> dict[str, float]:
+        """Seconds spent per phase (``solve``: iSAM2's updates; ``estimate``: reading the estimate
+        back; ``cut``: the marginal of what leaves the window; ``rebuild``: the new iSAM2 after it;
+        ``marginal``: a pose marginal) since the last call."""
+        phases, self.phase_s = self.phase_s, {}
+        return phases
+
     def update(self, iterations: int = 1) -> None:
         """An iSAM2 update with what was added since the last one, and ``iterations - 1`` more
         relinearisation steps; refreshes the estimates."""
+        t0 = time.perf_counter()
+        poses = [*self._pose_t, *self._new_pose_t]
         try:
-            self.isam.update(self._new_factors, self._new_values)
+            self.isam.update(self._new_factors, self._new_values, self._ordering(poses))
             for _ in range(iterations - 1):
-                self.isam.update()
+                self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), self._ordering(poses))
         except RuntimeError as exc:  # gtsam reports an indeterminate system or a missing key this way
             text = one_line(exc)  # with the variable gtsam names
             self._clear_pending()
             raise GraphUpdateError(f"the graph update at keyframe {self.last_keyframe} (t = {self.keyframe_t_s[-1]:.3f} s) failed: {text}") from None
+        t1 = self._timed("solve", t0)
         self._factors.push_back(self._new_factors)
+        self._factor_keys.extend(frozenset(self._new_factors.at(i).keys()) for i in range(self._new_factors.size()))
         self._pose_t.update(self._new_pose_t)
         self._point_t.update(self._new_point_t)
         self._clear_pending()
         self._read_estimate()
+        self._timed("estimate", t1)
 
     def _read_estimate(self, values: gtsam.Values | None = None, poses=None, points=None) -> None:
         """Refresh the kept estimates of the given keyframes and landmarks (default: the whole
@@ -163,52 +199,73 @@ class KeyframeGraph:
         return oldest < self.keyframe_t_s[-1] - self.lag_s - self.marginalize_every_s
 
     def marginalize(self) -> int:
-        """Marginalise every variable older than ``lag_s`` behind the newest keyframe; returns how many.
+        """Marginalise every variable older than ``lag_s`` behind the newest keyframe; returns how
+        many. Timed in two phases: ``cut`` (the marginal) and ``rebuild`` (the new iSAM2)."""
+        cut = self._prepare_cut()
+        if cut is None:
+            return 0
+        self._finish_cut(*cut)
+        return len(cut[-2])
 
-        The factors touching them are linearised at the current estimate and the old variables
-        eliminated; the remaining Gaussian factors on the variables they shared with the window
-        enter a new iSAM2 as ``LinearContainerFactor``s, with every factor not touching them."""
+    def _prepare_cut(self) -> tuple | None:
+        """The first half of the window's cut: every variable older than ``lag_s`` behind the newest
+        keyframe leaves the window (it keeps its estimate; later observations of it are not taken),
+        and the factors touching them, linearised at the current estimate, are eliminated. What they
+        knew about the rest is kept as Gaussian factors. Returns what :meth:`_finish_cut` takes, or
+        None when nothing is old enough."""
+        t0 = time.perf_counter()
         t_cut = self.keyframe_t_s[-1] - self.lag_s
         old_poses = [k for k, t in self._pose_t.items() if t < t_cut]
         old_points = [j for j, t in self._point_t.items() if t < t_cut]
         if not old_poses and not old_points:
-            return 0
+            return None
         values = self.isam.calculateEstimate()
         self._read_estimate(values, old_poses, old_points)  # what the marginalised variables keep
         old = {X(k) for k in old_poses} | {L(j) for j in old_points}
-        touching, kept = gtsam.NonlinearFactorGraph(), gtsam.NonlinearFactorGraph()
-        for i in range(self._factors.size()):
-            f = self._factors.at(i)
-            if f is None:
-                continue
-            (touching if any(key in old for key in f.keys()) else kept).add(f)
+        touching = gtsam.NonlinearFactorGraph()
+        kept = []  # the indices of the factors not touching them
+        for i, keys in enumerate(self._factor_keys):
+            if old.isdisjoint(keys):
+                kept.append(i)
+            else:
+                touching.add(self._factors.at(i))
         try:
             _, marginal = touching.linearize(values).eliminatePartialMultifrontal(gtsam.KeyVector(sorted(old)))
         except RuntimeError as exc:
             raise GraphUpdateError(f"marginalising the window before t = {t_cut:.3f} s failed: {one_line(exc)}") from None
-        for i in range(marginal.size()):
-            f = marginal.at(i)
-            if f is not None and len(f.keys()) > 0:
-                kept.add(gtsam.LinearContainerFactor(f, values))
+        linear = [gtsam.LinearContainerFactor(marginal.at(i), values) for i in range(marginal.size()) if marginal.at(i) is not None and len(marginal.at(i).keys()) > 0]
         for k in old_poses:
             del self._pose_t[k]
         for j in old_points:
             del self._point_t[j]
-        kept_values = gtsam.Values()
-        for k in self._pose_t:
-            kept_values.insert(X(k), values.atPose3(X(k)))
-        for j in self._point_t:
-            kept_values.insert(L(j), values.atPoint3(L(j)))
+        self._timed("cut", t0)
+        return kept, linear, old, t_cut
+
+    def _finish_cut(self, kept_indices: list[int], linear: list, old: set[int], t_cut: float) -> None:
+        """The second half of the window's cut: a new iSAM2 from the window's estimate, with every
+        factor that does not touch the variables that left (``kept_indices``) and what they knew
+        (``linear``) as ``LinearContainerFactor``s."""
+        t0 = time.perf_counter()
+        kept, kept_keys = gtsam.NonlinearFactorGraph(), []
+        for i in kept_indices:
+            kept.add(self._factors.at(i))
+            kept_keys.append(self._factor_keys[i])
+        for f in linear:
+            kept.add(f)
+            kept_keys.append(frozenset(f.keys()))
+        values = self.isam.calculateEstimate()
+        for key in old:
+            values.erase(key)  # what is left: the window's estimate, the new iSAM2's start
         pose_t, point_t = self._pose_t, self._point_t
         self._new_isam()
         self._pose_t, self._point_t = pose_t, point_t
         try:
-            self.isam.update(kept, kept_values)
+            self.isam.update(kept, values, self._ordering(self._pose_t))
         except RuntimeError as exc:
             raise GraphUpdateError(f"restarting iSAM2 after marginalising the window before t = {t_cut:.3f} s failed: {one_line(exc)}") from None
-        self._factors = kept
-        self._read_estimate()
-        return len(old)
+        self._factors, self._factor_keys = kept, kept_keys
+        # (the estimates are read at the next update: the new iSAM2 starts where the window was)
+        self._timed("rebuild", t0)
 
     def restart(self, T_world_body: np.ndarray, P: np.ndarray, point_priors: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
         """Start a new smoother from the newest keyframe after a failed update: its pose and the
@@ -226,7 +283,10 @@ class KeyframeGraph:
 
     def pose_covariance(self, k: int) -> np.ndarray:
         """Marginal covariance of keyframe ``k``'s pose (6x6, [rotation, translation], right perturbation)."""
-        return np.asarray(self.isam.marginalCovariance(X(k)))
+        t0 = time.perf_counter()
+        P = np.asarray(self.isam.marginalCovariance(X(k)))
+        self._timed("marginal", t0)
+        return P
 
 
 __all__ = ["GraphUpdateError", "KeyframeGraph"]

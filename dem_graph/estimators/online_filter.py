@@ -54,6 +54,13 @@ class FrameMatches:
     H_point: np.ndarray | None = None
     residual_px: np.ndarray | None = None
 
+    def for_points(self, kept: np.ndarray) -> FrameMatches:
+        """These matches (before the pose update) after the live points were cut to ``kept``, a mask
+        over the live points as searched: the matches of points that left dropped, the rest renumbered."""
+        new_index = np.cumsum(kept) - 1
+        stay = kept[self.idx]
+        return FrameMatches(new_index[self.idx[stay]], self.uv[stay], None if self.Sigma is None else self.Sigma[kept])
+
 
 class OnlineFilter:
     """The current pose ``T`` (``T_world_body``) with its covariance relative to the map ``P_loc``,
@@ -147,20 +154,23 @@ class OnlineFilter:
             self.v_body = local(T_prev, self.T) / dt_s
             self._speed_mps = float(np.linalg.norm(self.v_body[3:]))
 
-    def keyframe_observations(self, m: FrameMatches) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """This keyframe's inlier observations of landmarks still in the graph, as (landmarks,
+    def keyframe_observations(self, m: FrameMatches, k: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Keyframe ``k``'s inlier observations of landmarks still in the graph, as (landmarks,
         pixels, sigma_px), and the step (m,3, metres) each gave its point. (A point whose landmark
         the graph has marginalised was archived when the front end heard of it; the graph skips any
-        it hears of first.)
+        it hears of first.) With ``isam2.observation_every`` n > 1, a landmark's observation goes at
+        every n-th keyframe only (landmark + k divisible by n, so that the landmarks take turns); it
+        then carries the frames since its last one (``sigma_px / sqrt(frames)``).
 
         Each also updates its point at once, the pose held fixed (one Gauss-Newton step of the
         point's information form), so that a point's estimate and covariance stay together until
         the graph's smoothed estimate replaces them: in the same frame by default, keyframes later
         with the graph in a second process. (Held back until then, new points would keep their
         seed's search regions, too large to search.)"""
-        inlier = m.inlier
-        idx, uv, H_point, residual_px = m.idx[inlier], m.uv[inlier], m.H_point[inlier], m.residual_px[inlier]
         live = self.live
+        every = self.config.observation_spacing
+        inlier = m.inlier if every == 1 else m.inlier & ((live.landmark[m.idx] + k) % every == 0)
+        idx, uv, H_point, residual_px = m.idx[inlier], m.uv[inlier], m.H_point[inlier], m.residual_px[inlier]
         n = np.maximum(live.n_since_keyframe[idx], 1) if self.config.keyframe_weighting else np.ones(len(idx), dtype=np.int64)
         sigma = self._sigma_px / np.sqrt(effective_sample_size(n, self.config.track_correlation))
         live.n_since_keyframe[idx] = 0

@@ -47,6 +47,28 @@ def frame_timing_summary(per_frame: dict[str, list[float]]) -> dict[str, PhaseTi
     return summary
 
 
+class GraphUpdateTiming(MetricsModel):
+    """The graph's updates over a run: how many, the time of each (``total``, milliseconds) and of
+    each phase over the updates it ran in (``factors``, ``solve``, ``estimate``, ``marginal``, and the
+    window's ``cut`` and ``rebuild`` made before it; ``counts``: in how many)."""
+
+    updates: int
+    total: PhaseTiming
+    phases: dict[str, PhaseTiming]
+    counts: dict[str, int]
+
+
+def graph_update_timing(per_update: dict[str, list[float]]) -> GraphUpdateTiming | None:
+    """:class:`GraphUpdateTiming` from each update's seconds by phase (``total`` in every update, a phase
+    only in those it ran in); None without an update."""
+    total = per_update.get("total", [])
+    if not total:
+        return None
+    summary = frame_timing_summary(per_update)
+    phases = {k: v for k, v in summary.items() if k != "total"}
+    return GraphUpdateTiming(updates=len(total), total=summary["total"], phases=phases, counts={k: len(per_update[k]) for k in phases})
+
+
 def resident_memory_mb() -> float:
     """This process's resident memory now, MiB (Linux ``/proc/self/statm``; NaN elsewhere)."""
     import os

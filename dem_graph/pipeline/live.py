@@ -63,7 +63,10 @@ def make_estimator(rig: SensorRig, T_world_body_initial: np.ndarray, t_start_s: 
     if config.estimator in ("gm", "ptpm"):
         return EkfSlam(*args, EkfConfig(**shared, **dict(config.ekf), variant=config.estimator))
     if config.estimator in ("isam2", "isam2-batch"):
-        return Isam2Slam(*args, Isam2Config(**shared, **dict(config.isam2), batch=config.estimator == "isam2-batch"))
+        isam2 = dict(config.isam2)
+        if isam2["graph_when_behind"] is None:  # a log replayed as fast as possible may wait for the graph; at the sensors' rate it may not
+            isam2["graph_when_behind"] = "merge" if config.realtime else "wait"
+        return Isam2Slam(*args, Isam2Config(**shared, **isam2, batch=config.estimator == "isam2-batch"))
     if config.estimator == ODOMETRY_BASELINE:
         return OdometryOnly(*args, config.motion)
     raise DemGraphError(f"unknown estimator '{config.estimator}'; choose one of {', '.join((*ESTIMATORS, ODOMETRY_BASELINE))}")

@@ -12,7 +12,7 @@ from dem_graph.datasets.base import Sequence
 from dem_graph.estimators.base import EstimatorResult
 from dem_graph.evaluation.dem_metrics import HeightErrors
 from dem_graph.evaluation.results import MetricsModel
-from dem_graph.evaluation.timing import PhaseTiming, frame_timing_summary
+from dem_graph.evaluation.timing import GraphUpdateTiming, PhaseTiming, frame_timing_summary, graph_update_timing
 from dem_graph.evaluation.trajectory_metrics import (
     NeesSummary,
     TrajectoryAccuracy,
@@ -65,6 +65,7 @@ class RunMetrics(MetricsModel):
     elapsed_s: float | None = None  # the whole run, wall clock
     error: str | None = None  # why the run stopped early (its results go up to there)
     time_per_frame: dict[str, PhaseTiming] | None = None  # by phase: total, prediction, tracking, update, map, graph, ...
+    graph_update: GraphUpdateTiming | None = None  # the graph estimator: its updates' time by phase (in its own process, when it has one)
     points_per_frame: PointsPerFrame | None = None
     tracking: TrackingYield | None = None  # how the searches for live points ended
     map_points: int | None = None  # points ever estimated
@@ -88,6 +89,7 @@ def compute_metrics(sequence: Sequence, res: EstimatorResult, error: str | None 
         return metrics
     phases = sorted({k for f in res.frames for k in f.timing_s})
     metrics.time_per_frame = frame_timing_summary({k: [f.timing_s.get(k, 0.0) for f in res.frames] for k in phases})
+    metrics.graph_update = graph_update_timing(res.graph_update_s)
     live = np.array([f.n_live for f in res.frames])
     tracked = np.array([f.n_tracked for f in res.frames])
     metrics.points_per_frame = PointsPerFrame(live_median=float(np.median(live)), live_max=int(live.max()), tracked_median=float(np.median(tracked)))
@@ -117,12 +119,32 @@ def laser_cells_error_text(e: HeightErrors) -> str:
     return f"height RMSE {100 * e.rmse_m:.1f} cm over the laser-swept cells"
 
 
+def graph_update_line(g: GraphUpdateTiming, events: dict) -> str:
+    """The graph's updates in one line: their time, the window's cuts, how late the results came and
+    the keyframes merged while the graph was behind."""
+    line = f"graph: {g.updates} updates, median {g.total.median_ms:.1f} ms, p95 {g.total.p95_ms:.1f} ms"
+    cut, rebuild = g.phases.get("cut"), g.phases.get("rebuild")
+    if cut is not None and rebuild is not None:
+        line += (
+            f"; the window's {g.counts['cut']} cuts, made between results: marginal median {cut.median_ms:.1f} ms (p95 {cut.p95_ms:.1f}), "
+            f"new iSAM2 median {rebuild.median_ms:.1f} ms (p95 {rebuild.p95_ms:.1f})"
+        )
+    if "graph_lag_keyframes_median" in events:
+        line += f"; results {events['graph_lag_keyframes_median']} keyframes late (median), {events['graph_lag_keyframes_max']} at most"
+    merged = int(events.get("keyframes_merged", 0))
+    if merged:
+        line += f"; {merged} keyframes merged while the graph was behind"
+    return line
+
+
 def summary_lines(m: RunMetrics) -> list[str]:
     """A run's metrics in a few lines, as ``dem-graph run`` prints them."""
     lines = [f"{m.estimator}: {m.frames or 0} frames in {m.elapsed_s or 0.0:.1f} s"]
     if m.time_per_frame is not None and m.points_per_frame is not None:
         t, p = m.time_per_frame["total"], m.points_per_frame
         lines.append(f"time per frame: median {t.median_ms:.1f} ms, p95 {t.p95_ms:.1f} ms; live points median {p.live_median:.0f}, tracked {p.tracked_median:.0f}")
+    if m.graph_update is not None:
+        lines.append(graph_update_line(m.graph_update, m.events or {}))
     if m.tracking is not None:
         y = m.tracking
         failed = ", ".join(f"{k.replace('_', ' ')} {100 * v:.{0 if 100 * v >= 1 else 1}f} %" for k, v in y.failed_fraction.items()) or "none"

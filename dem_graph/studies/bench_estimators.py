@@ -41,6 +41,10 @@ class BenchRow:
     live_map: TimingStats | None = None  # the live map's update per frame
     whole_frame: TimingStats | None = None  # the estimator's events and the live map, per frame
     memory_late_over_early: float = float("nan")  # resident memory at frame 1500 / at frame 150
+    graph_update: TimingStats | None = None  # isam2: each graph update (in the second process with isam2-process)
+    graph_lag_max: float = float("nan")  # isam2: most keyframes between a keyframe and its graph result
+    keyframes_merged: int = 0  # isam2-process: frames not made keyframes while the graph was behind
+    ate_m: float = float("nan")
 
     @property
     def frames_per_s(self) -> float:
@@ -69,13 +73,18 @@ class EstimatorBenchResult:
                 "-" if np.isnan(r.graph_lag_keyframes) else f"{r.graph_lag_keyframes:.0f}",
                 f"{r.live_map.median_ms:.2f}", f"{r.live_map.p95_ms:.2f}", f"{r.whole_frame.median_ms:.1f}", f"{r.whole_frame.p95_ms:.1f}",
                 "-" if np.isnan(r.memory_late_over_early) else f"{r.memory_late_over_early:.3f}",
+                "-" if r.graph_update is None else f"{r.graph_update.median_ms:.1f}",
+                "-" if r.graph_update is None else f"{r.graph_update.p95_ms:.1f}",
+                "-" if np.isnan(r.graph_lag_max) else f"{r.graph_lag_max:.0f}",
+                r.keyframes_merged,
+                f"{1000 * r.ate_m:.1f}",
             ]
             for r in self.rows
         ]
         headers = [
             "estimator", "cap n", "live", "tracked", "frame ms (median)", "frame ms (p95)", "tracking ms", "update ms", "graph ms (mean)", "frames/s", "points/s", "drift %",
             "frame 1500 / frame 150", "graph lag (keyframes)", "map ms (median)", "map ms (p95)", "whole frame ms (median)", "whole frame ms (p95)",
-            "memory 1500 / 150",
+            "memory 1500 / 150", "graph update ms (median)", "graph update ms (p95)", "graph lag max", "keyframes merged", "ATE mm",
         ]
         return format_table(headers, rows, title=f"estimator benchmark: '{self.scenario}' {self.image_size}, {self.frames} frames {'at the camera rate' if self.realtime else 'as fast as possible'}, on {self.machine}")
 
@@ -101,6 +110,10 @@ def config_for_points(estimator: str, max_points: int, rig, speed_mps: float | N
     fe.focus.cell_size_m = float(np.sqrt(area / (0.8 * max_points)))
     fe.min_separation_px = min(fe.min_separation_px, 6.0)
     return config
+
+
+def _update_stats(seconds: list[float]) -> TimingStats | None:
+    return TimingStats.from_seconds(seconds) if seconds else None
 
 
 def bench_estimators(
@@ -143,6 +156,10 @@ def bench_estimators(
                     TimingStats.from_seconds(live.map_timing_s[5:]),
                     TimingStats.from_seconds(live.frame_timing_s[5:]),
                     memory.get("frame_1500", np.nan) / memory.get("frame_150", np.nan),
+                    _update_stats(run.estimator.graph_update_s.get("total", [])),
+                    float(run.estimator.counters.get("graph_lag_keyframes_max", np.nan)),
+                    int(run.estimator.counters.get("keyframes_merged", 0)),
+                    float(run.metrics.trajectory.ate_rmse_m),
                 )
             )
     cam = sim.rig.camera
