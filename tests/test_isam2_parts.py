@@ -55,6 +55,7 @@ def test_landmarks_number_segments_and_keep_the_links_for_the_next_keyframe():
     book.entered([3], 2)
     assert book.entered_after(3, 1) and not book.entered_after(3, 2) and not book.entered_after(0, 0)
     assert not book.entered_after(99, 0)  # never entered
+    assert book.sent(3) and not book.sent(99)
 
 
 def test_batch_log_counts_a_refreshed_match_for_both_landmarks(smoke_log):
@@ -71,7 +72,8 @@ def test_batch_log_counts_a_refreshed_match_for_both_landmarks(smoke_log):
 
 def test_graph_client_moves_what_it_sent_by_the_graphs_correction(smoke_log):
     """A result for keyframe 1 that moves it 0.1 m forward: the last keyframe moves with it, the live
-    points take the graph's landmarks, a point placed after keyframe 1 moves by the correction, and
+    points take the graph's landmarks, a point placed after keyframe 1 moves by the correction, so
+    does one whose patch was refreshed since the last keyframe (its new landmark not sent yet), and
     one the graph no longer holds leaves."""
     client = GraphClient(Isam2Config(), smoke_log.rig, np.eye(4), np.eye(6) * 1e-8, 0.0, Counter())
     client.carry(_translation(0.05), np.eye(6) * 1e-4)
@@ -82,12 +84,15 @@ def test_graph_client_moves_what_it_sent_by_the_graphs_correction(smoke_log):
     live.add([10, 11, 12], client.landmarks.start(3), np.array([[5.0, 0.0, 0.0], [6.0, 1.0, 0.0], [7.0, -1.0, 0.0]]), np.tile(np.eye(3) * 1e-2, (3, 1, 1)))
     client.landmarks.entered([0, 1], 0)
     client.landmarks.entered([2], 2)  # started after keyframe 1, from a pose the correction moves
+    # a patch refreshed in a frame that was not a keyframe: the new landmark goes with the next one
+    live.add([13], [client.landmarks.split(13, 0, np.eye(3) * 1e-4)], np.array([[8.0, 2.0, 0.0]]), np.eye(3)[None] * 1e-2)
     T_smoothed = _translation(0.15)
     correction, C, keep = client.apply(GraphResult(1, {1: T_smoothed}, {0: np.array([5.0, 0.5, 0.0])}), live)
     np.testing.assert_allclose(correction, _translation(0.1), atol=1e-15)
     np.testing.assert_allclose(C, _translation(0.1), atol=1e-15)
     np.testing.assert_allclose(client.T_kf, T_smoothed, atol=1e-15)
-    np.testing.assert_array_equal(keep, [True, False, True])
+    np.testing.assert_array_equal(keep, [True, False, True, True])
+    np.testing.assert_allclose(live.X[3], [8.1, 2.0, 0.0], atol=1e-15)
     np.testing.assert_array_equal(live.X[0], [5.0, 0.5, 0.0])
     np.testing.assert_allclose(live.X[2], [7.1, -1.0, 0.0], atol=1e-15)
     np.testing.assert_allclose(client.points[2], live.X[2], atol=0)

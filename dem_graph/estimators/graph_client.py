@@ -107,6 +107,11 @@ class Landmarks:
     def entered_after(self, landmark: int, k: int) -> bool:
         return self._keyframe.get(landmark, -1) > k
 
+    def sent(self, landmark: int) -> bool:
+        """A keyframe's message (or a restart) has taken ``landmark`` to the graph; a refreshed patch's
+        new landmark has not, until the next keyframe."""
+        return landmark in self._keyframe
+
 
 class GraphClient:
     """Sends keyframes to the graph and applies its results; keeps every keyframe's time and the
@@ -285,7 +290,9 @@ class GraphClient:
             X_lm = r.points.get(lm)
             if X_lm is not None:
                 live.X[i] = X_lm + later_steps.get(lm, 0.0)
-            elif self.landmarks.entered_after(lm, k):  # started after keyframe k: placed from a pose the correction has moved
+            elif self.landmarks.entered_after(lm, k) or not self.landmarks.sent(lm):
+                # started after keyframe k, or a patch refreshed since the last keyframe sent (its
+                # link goes with the next one): placed from a pose the correction has moved
                 live.X[i] = transform_points(C, live.X[i][None])[0]
                 self.points[lm] = live.X[i].copy()
             else:
