@@ -112,6 +112,16 @@ class Landmarks:
         new landmark has not, until the next keyframe."""
         return landmark in self._keyframe
 
+    def continues(self, landmark: int) -> int | None:
+        """The landmark a refreshed patch's ``landmark`` continues, while their link waits for the
+        next keyframe (the first sent one, when a patch was refreshed twice meanwhile); else None."""
+        before = {new: old for old, new, _ in self._pending_links}
+        if landmark not in before:
+            return None
+        while landmark in before:
+            landmark = before[landmark]
+        return landmark
+
 
 class GraphClient:
     """Sends keyframes to the graph and applies its results; keeps every keyframe's time and the
@@ -290,9 +300,12 @@ class GraphClient:
             X_lm = r.points.get(lm)
             if X_lm is not None:
                 live.X[i] = X_lm + later_steps.get(lm, 0.0)
-            elif self.landmarks.entered_after(lm, k) or not self.landmarks.sent(lm):
-                # started after keyframe k, or a patch refreshed since the last keyframe sent (its
-                # link goes with the next one): placed from a pose the correction has moved
+            elif (before := self.landmarks.continues(lm)) is not None:
+                # a patch refreshed since the last keyframe sent (its link goes with the next one): the
+                # point is still where the landmark it continues is
+                if before in r.points:
+                    live.X[i] = r.points[before] + later_steps.get(before, 0.0)
+            elif self.landmarks.entered_after(lm, k):  # started after keyframe k: placed from a pose the correction has moved
                 live.X[i] = transform_points(C, live.X[i][None])[0]
                 self.points[lm] = live.X[i].copy()
             else:
