@@ -107,20 +107,16 @@ class Landmarks:
     def entered_after(self, landmark: int, k: int) -> bool:
         return self._keyframe.get(landmark, -1) > k
 
-    def sent(self, landmark: int) -> bool:
-        """A keyframe's message (or a restart) has taken ``landmark`` to the graph; a refreshed patch's
-        new landmark has not, until the next keyframe."""
-        return landmark in self._keyframe
-
-    def continues(self, landmark: int) -> int | None:
-        """The landmark a refreshed patch's ``landmark`` continues, while their link waits for the
-        next keyframe (the first sent one, when a patch was refreshed twice meanwhile); else None."""
+    def continuing(self) -> dict[int, int]:
+        """Each refreshed patch's new landmark whose link waits for the next keyframe, with the
+        landmark it continues (the first one sent, when a patch was refreshed twice meanwhile)."""
         before = {new: old for old, new, _ in self._pending_links}
-        if landmark not in before:
-            return None
-        while landmark in before:
-            landmark = before[landmark]
-        return landmark
+        out = {}
+        for new, old in before.items():
+            while old in before:
+                old = before[old]
+            out[new] = old
+        return out
 
 
 class GraphClient:
@@ -294,13 +290,14 @@ class GraphClient:
         self._Q_since = {j: Q for j, Q in self._Q_since.items() if j > k}
         self._steps_in_flight = {j: steps for j, steps in self._steps_in_flight.items() if j > k}
         later_steps = self._later_steps()
+        continuing = self.landmarks.continuing()
         keep = np.ones(len(live), dtype=bool)
         for i, lm in enumerate(live.landmark):
             lm = int(lm)
             X_lm = r.points.get(lm)
             if X_lm is not None:
                 live.X[i] = X_lm + later_steps.get(lm, 0.0)
-            elif (before := self.landmarks.continues(lm)) is not None:
+            elif (before := continuing.get(lm)) is not None:
                 # a patch refreshed since the last keyframe sent (its link goes with the next one): the
                 # point is still where the landmark it continues is
                 if before in r.points:
