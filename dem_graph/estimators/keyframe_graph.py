@@ -165,11 +165,11 @@ class KeyframeGraph:
         """An iSAM2 update with what was added since the last one, and ``iterations - 1`` more
         relinearisation steps; refreshes the estimates."""
         t0 = time.perf_counter()
-        poses = [*self._pose_t, *self._new_pose_t]
+        ordering = self._ordering([*self._pose_t, *self._new_pose_t])
         try:
-            self.isam.update(self._new_factors, self._new_values, self._ordering(poses))
+            self.isam.update(self._new_factors, self._new_values, ordering)
             for _ in range(iterations - 1):
-                self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), self._ordering(poses))
+                self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), ordering)
         except RuntimeError as exc:  # gtsam reports an indeterminate system or a missing key this way
             text = one_line(exc)  # with the variable gtsam names
             self._clear_pending()
@@ -199,34 +199,26 @@ class KeyframeGraph:
         return oldest < self.keyframe_t_s[-1] - self.lag_s - self.marginalize_every_s
 
     def marginalize(self) -> int:
-        """Marginalise every variable older than ``lag_s`` behind the newest keyframe; returns how
-        many. Timed in two phases: ``cut`` (the marginal) and ``rebuild`` (the new iSAM2)."""
-        cut = self._prepare_cut()
-        if cut is None:
-            return 0
-        self._finish_cut(*cut)
-        return len(cut[-2])
+        """Marginalise every variable older than ``lag_s`` behind the newest keyframe; returns how many.
 
-    def _prepare_cut(self) -> tuple | None:
-        """The first half of the window's cut: every variable older than ``lag_s`` behind the newest
-        keyframe leaves the window (it keeps its estimate; later observations of it are not taken),
-        and the factors touching them, linearised at the current estimate, are eliminated. What they
-        knew about the rest is kept as Gaussian factors. Returns what :meth:`_finish_cut` takes, or
-        None when nothing is old enough."""
+        The factors touching them are linearised at the current estimate and the old variables
+        eliminated (timed as ``cut``); the remaining Gaussian factors on the variables they shared
+        with the window enter a new iSAM2 as ``LinearContainerFactor``s, with every factor not
+        touching them, started from the window's estimate (``rebuild``). A marginalised variable
+        keeps its estimate; later observations of it are not taken."""
         t0 = time.perf_counter()
         t_cut = self.keyframe_t_s[-1] - self.lag_s
         old_poses = [k for k, t in self._pose_t.items() if t < t_cut]
         old_points = [j for j, t in self._point_t.items() if t < t_cut]
         if not old_poses and not old_points:
-            return None
+            return 0
         values = self.isam.calculateEstimate()
         self._read_estimate(values, old_poses, old_points)  # what the marginalised variables keep
         old = {X(k) for k in old_poses} | {L(j) for j in old_points}
-        touching = gtsam.NonlinearFactorGraph()
-        kept = []  # the indices of the factors not touching them
+        touching, kept_indices = gtsam.NonlinearFactorGraph(), []
         for i, keys in enumerate(self._factor_keys):
             if old.isdisjoint(keys):
-                kept.append(i)
+                kept_indices.append(i)
             else:
                 touching.add(self._factors.at(i))
         try:
@@ -238,14 +230,7 @@ class KeyframeGraph:
             del self._pose_t[k]
         for j in old_points:
             del self._point_t[j]
-        self._timed("cut", t0)
-        return kept, linear, old, t_cut
-
-    def _finish_cut(self, kept_indices: list[int], linear: list, old: set[int], t_cut: float) -> None:
-        """The second half of the window's cut: a new iSAM2 from the window's estimate, with every
-        factor that does not touch the variables that left (``kept_indices``) and what they knew
-        (``linear``) as ``LinearContainerFactor``s."""
-        t0 = time.perf_counter()
+        t1 = self._timed("cut", t0)
         kept, kept_keys = gtsam.NonlinearFactorGraph(), []
         for i in kept_indices:
             kept.add(self._factors.at(i))
@@ -253,7 +238,6 @@ class KeyframeGraph:
         for f in linear:
             kept.add(f)
             kept_keys.append(frozenset(f.keys()))
-        values = self.isam.calculateEstimate()
         for key in old:
             values.erase(key)  # what is left: the window's estimate, the new iSAM2's start
         pose_t, point_t = self._pose_t, self._point_t
@@ -265,7 +249,8 @@ class KeyframeGraph:
             raise GraphUpdateError(f"restarting iSAM2 after marginalising the window before t = {t_cut:.3f} s failed: {one_line(exc)}") from None
         self._factors, self._factor_keys = kept, kept_keys
         # (the estimates are read at the next update: the new iSAM2 starts where the window was)
-        self._timed("rebuild", t0)
+        self._timed("rebuild", t1)
+        return len(old)
 
     def restart(self, T_world_body: np.ndarray, P: np.ndarray, point_priors: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
         """Start a new smoother from the newest keyframe after a failed update: its pose and the
