@@ -60,19 +60,23 @@ def scenarios() -> None:
 @click.option("--length-m", type=float, default=None, help="Distance to drive, metres.")
 @click.option("--speed-mps", type=float, default=None, help="Mean speed, m/s.")
 @click.option("--no-odometry", is_flag=True, help="Leave wheel odometry out of the dataset.")
+@click.option("--no-imu", is_flag=True, help="Leave the IMU (gyroscope and accelerometer, imu.npz) out of the dataset.")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output dataset folder.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @_friendly_errors
-def simulate(scenario_name, seed, length_m, speed_mps, no_odometry, out_dir, overwrite) -> None:
+def simulate(scenario_name, seed, length_m, speed_mps, no_odometry, no_imu, out_dir, overwrite) -> None:
     """Simulate a scenario and write it as a dataset folder, with a preview picture."""
     from dem_graph.sim.pipeline import simulate as run
     from dem_graph.sim.scenarios import DEFAULT_SCENARIO, scenario
 
-    config = scenario(scenario_name or DEFAULT_SCENARIO, seed=seed, length_m=length_m, speed_mps=speed_mps, with_odometry=False if no_odometry else None)
+    config = scenario(
+        scenario_name or DEFAULT_SCENARIO, seed=seed, length_m=length_m, speed_mps=speed_mps, with_odometry=False if no_odometry else None,
+        with_imu=False if no_imu else None,
+    )
     result = run(config, out_dir, overwrite=overwrite)
     click.echo(
         f"simulated '{config.name}' (seed {config.seed}): {result.length_m:.1f} m in {result.duration_s:.1f} s, "
-        f"{result.n_frames} frames, {result.n_scans} laser scans, {result.n_odometry} odometry increments "
+        f"{result.n_frames} frames, {result.n_scans} laser scans, {result.n_odometry} odometry increments, {result.n_imu} IMU samples "
         f"({result.elapsed_s:.1f} s of computing)"
     )
     click.echo(f"dataset: {result.out_dir}")
@@ -108,11 +112,16 @@ _DATASET_OPTIONS = (
     click.option("--image-topic", default=None, help="ROS bag: sensor_msgs Image or CompressedImage topic."),
     click.option("--scan-topic", default=None, help="ROS bag: sensor_msgs LaserScan topic."),
     click.option("--odometry-topic", default=None, help="ROS bag: nav_msgs Odometry topic (optional)."),
-    click.option("--body-frame", default=None, help="ROS bag: body frame in tf_static (with --camera-frame, --laser-frame: extrinsics from tf)."),
+    click.option("--imu-topic", default=None, help="ROS bag: sensor_msgs Imu topic (optional; the rig YAML needs an imu section)."),
+    click.option(
+        "--body-frame",
+        default=None,
+        help="ROS bag: body frame in tf_static (with --camera-frame, --laser-frame: extrinsics from tf; T_body_imu from tf when it links the IMU messages' frame_id).",
+    ),
     click.option("--camera-frame", default=None, help="ROS bag: camera frame in tf_static."),
     click.option("--laser-frame", default=None, help="ROS bag: laser frame in tf_static."),
 )
-_DATASET_KEYS = ("sequence", "ring", "camera", "truth", "rig", "image_topic", "scan_topic", "odometry_topic", "body_frame", "camera_frame", "laser_frame")
+_DATASET_KEYS = ("sequence", "ring", "camera", "truth", "rig", "image_topic", "scan_topic", "odometry_topic", "imu_topic", "body_frame", "camera_frame", "laser_frame")
 
 
 def _dataset_options(fn):
@@ -142,12 +151,13 @@ def _pop_dataset_options(kwargs: dict) -> dict:
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="YAML run configuration (see config.yaml of a run).")
 @click.option("--max-points", type=int, default=None, help="Cap n on live points.")
 @click.option("--no-odometry", is_flag=True, help="Ignore the dataset's odometry (constant-velocity model).")
+@click.option("--no-imu", is_flag=True, help="Ignore the dataset's IMU.")
 @click.option("--max-frames", type=int, default=None, help="Stop after this many camera frames.")
 @click.option("--viewer", is_flag=True, help="Show the run live in rerun (pip install 'dem-graph[viewer]'): image and tracked points, live local map, trajectory.")
 @click.option("--record", "record_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Save what --viewer shows to this rerun recording (.rrd), without a screen.")
 @_dataset_options
 @_friendly_errors
-def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_dir, overwrite, config_path, max_points, no_odometry, max_frames, viewer, record_path, **kwargs) -> None:
+def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_dir, overwrite, config_path, max_points, no_odometry, no_imu, max_frames, viewer, record_path, **kwargs) -> None:
     """Run an estimator over a dataset (folder, KITTI or ROS bag); write trajectory.tum, points.ply, metrics.json, config.yaml
     (isam2 also trajectory_smoothed.tum; isam2-batch also trajectory_online.tum)."""
     from dem_graph.pipeline.config import GRAPH_ESTIMATORS, RunOverrides, configured_estimator
@@ -158,7 +168,7 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_
     options = _pop_dataset_options(kwargs)
     fmt = options.pop("fmt")
     overrides = RunOverrides(
-        estimator=estimator, max_frames=max_frames, max_points=max_points, no_odometry=no_odometry, lag_s=lag_s,
+        estimator=estimator, max_frames=max_frames, max_points=max_points, no_odometry=no_odometry, no_imu=no_imu, lag_s=lag_s,
         keyframe_every=keyframe_every, graph_process=graph_process, realtime=realtime,
     )
     graph_only = overrides.graph_only()
@@ -307,7 +317,7 @@ def _number_list(text: str, kind, what: str) -> tuple:
 @click.option("--seeds", default="0-7", show_default=True, help="Seeds: a list (0,3,5) or a range (0-7).")
 @click.option("--speeds", default="1.5", show_default=True, help="Speeds, m/s, comma-separated.")
 @click.option("--budgets", default="default", show_default=True, help="Caps on live points, comma-separated; 'default': dem-graph run's settings.")
-@click.option("--estimators", default="gm,ptpm,isam2,isam2-batch", show_default=True, help="Comma-separated estimators (isam2-process: isam2 with its graph in a second process).")
+@click.option("--estimators", default="gm,ptpm,isam2,isam2-batch", show_default=True, help="Comma-separated estimators (isam2-process: isam2 with its graph in a second process; a name ending in -noimu: that estimator ignoring the dataset's IMU).")
 @click.option("--realtime", is_flag=True, help="Give each run its events at the camera's rate (fair only with a core per run: use --workers).")
 @click.option("--max-frames", type=int, default=None, help="Stop each run after this many camera frames.")
 @click.option("--length", "length_m", type=float, default=None, help="Shorten the drive to this many metres.")

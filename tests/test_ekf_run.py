@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dem_graph.datasets.events import CameraFrame
+from dem_graph.datasets.events import CameraFrame, Odometry
 from dem_graph.estimators.ekf import EkfConfig
 from dem_graph.pipeline import RunConfig, run_estimator
 
@@ -71,7 +71,7 @@ def test_ptpm_search_regions_shrink_within_a_frame(smoke_log, model, min_shrink)
                 shrink.append(np.median(prior[half:] / np.maximum(used[half:], 1.0)))
         elif hasattr(event, "ranges_m"):
             est.on_scan(event)
-        else:
+        elif isinstance(event, Odometry):
             est.on_odometry(event)
     assert len(shrink) > 20
     assert np.median(shrink) > min_shrink

@@ -306,12 +306,14 @@ def test_a_delay_for_a_graph_in_a_second_process_is_refused():
 
 @pytest.fixture(scope="module")
 def paper_5m():
-    """The first 5 m of `paper` (800x600, 83 frames), every event in memory."""
+    """The first 5 m of `paper` (800x600, 83 frames), every event in memory; without the IMU, whose
+    1 mm ATE in-process on this log is below the spread of what late results change (1.0 in-process;
+    2.1, 1.2, 1.2 and 2.3 mm 1, 2, 3 and 6 keyframes late: docs/imu.md)."""
     from dem_graph.datasets.memory import InMemorySequence
     from dem_graph.sim.scenarios import scenario
     from dem_graph.sim.simulator import SimulatedSequence
 
-    return InMemorySequence.record(SimulatedSequence.from_config(scenario("paper", seed=1, length_m=5.0)))
+    return InMemorySequence.record(SimulatedSequence.from_config(scenario("paper", seed=1, length_m=5.0, with_imu=False)))
 
 
 def _late(sequence, delay: int):

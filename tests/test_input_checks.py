@@ -212,7 +212,7 @@ def test_an_increment_beyond_the_vehicles_speed_is_skipped_with_a_warning(folder
     assert "m/s > input_checks.max_speed_mps = 10 m/s): skipped" in warnings[0]
     indices = [e.index for e in _odometry(sequence)]
     assert indices == [i for i in range(16) if i != 6]
-    assert sequence.event_count() == len(list(sequence.events())) == 8 + 4 + 15
+    assert sequence.event_count() == len(list(sequence.events())) == 8 + 4 + 15 + sequence.n_imu
 
 
 def test_an_increment_turning_too_fast_is_skipped(folder, caplog):
@@ -363,7 +363,8 @@ def test_a_sound_log_opens_without_a_warning(folder, caplog):
     caplog.set_level(logging.WARNING)
     sequence = FolderSequence(folder)
     events = list(sequence.events())
-    assert len(events) == sequence.event_count() == 8 + 4 + 16
+    assert sequence.n_imu == 63  # 0.31 s at 200 Hz
+    assert len(events) == sequence.event_count() == 8 + 4 + 16 + 63
     assert not _warnings(caplog)
 
 

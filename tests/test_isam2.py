@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dem_graph.datasets.events import CameraFrame, LaserScan
+from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
 from dem_graph.datasets.memory import InMemorySequence
 from dem_graph.estimators.isam2 import Isam2Config, Isam2Slam
 from dem_graph.frontend.frontend import FrontEnd
@@ -31,14 +31,14 @@ def isam2_run(smoke_log):
 
 @pytest.fixture(scope="module")
 def noiseless_flat_log() -> InMemorySequence:
-    """`smoke` on flat ground (the flat-ground prior is true) with every sensor noiseless."""
+    """`smoke` on flat ground (the flat-ground prior is true) with every sensor noiseless, and no IMU."""
     cfg = scenario("smoke", seed=3)
     rig = cfg.rig
     odo = rig.odometry.model_copy(
         update=dict(sigma_scale=0.0, sigma_forward_m_per_sqrt_m=0.0, sigma_lateral_m_per_sqrt_m=0.0, sigma_vertical_m_per_sqrt_m=0.0, sigma_yaw_rad_per_sqrt_m=0.0, sigma_roll_pitch_rad_per_sqrt_m=0.0)
     )
     rig = rig.model_copy(update=dict(camera=rig.camera.model_copy(update=dict(noise_sigma_dn=0.0)), laser=rig.laser.model_copy(update=dict(range_sigma_m=0.0)), odometry=odo))
-    cfg = cfg.model_copy(update=dict(rig=rig, terrain=cfg.terrain.model_copy(update=dict(kind="flat"))))
+    cfg = cfg.model_copy(update=dict(rig=rig, terrain=cfg.terrain.model_copy(update=dict(kind="flat")), with_imu=False))
     return InMemorySequence.record(SimulatedSequence.from_config(cfg))
 
 
@@ -120,7 +120,7 @@ def test_keyframes_and_window_stay_bounded(smoke_log):
             assert min(stamps.values()) >= newest - config.lag_s - config.marginalize_every_s - config.keyframe_every / 25.0 - 1e-9
         elif isinstance(e, LaserScan):
             est.on_scan(e)
-        else:
+        elif isinstance(e, Odometry):
             est.on_odometry(e)
     est.finish()
     # 65 frames, a keyframe every 4 (the first frame is keyframe 0 itself)
@@ -160,13 +160,16 @@ def test_constant_velocity_without_odometry(smoke_log):
     assert run.metrics.trajectory.drift_percent < 3.0
 
 
-def test_wrong_matches_barely_move_the_estimate(smoke_log, isam2_run):
+def test_wrong_matches_barely_move_the_estimate(smoke_log):
     """10 % of matches replaced by ones 12 px away: the gate and the outlier test drop them, the
-    Huber kernel bounds what gets through; the ATE grows by less than 20 % (the issue's bound)."""
-    run = _run(smoke_log, false_matches={"fraction": 0.1, "offset_px": 12.0})
+    Huber kernel bounds what gets through; the ATE grows by less than 20 % (the issue's bound;
+    measured 5.73 against 6.66 mm). Both runs ignore the IMU: with it the ATE is 2 mm, where 20 % is
+    below the spread the choice of tracked points alone gives (2.68 against 2.07 mm)."""
+    clean = _run(smoke_log, motion={"use_imu": False})
+    run = _run(smoke_log, false_matches={"fraction": 0.1, "offset_px": 12.0}, motion={"use_imu": False})
     ev = run.metrics.events
     assert ev["injected"] > 300
-    assert run.metrics.trajectory.ate_rmse_m < 1.2 * isam2_run.metrics.trajectory.ate_rmse_m
+    assert run.metrics.trajectory.ate_rmse_m < 1.2 * clean.metrics.trajectory.ate_rmse_m
 
 
 # --- degenerate input --------------------------------------------------------------------------

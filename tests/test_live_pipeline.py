@@ -256,8 +256,10 @@ def test_driver_callbacks_and_a_guidance_reading_at_its_own_rate(smoke_log):
             update = live.on_frame(CameraFrame(e.t_s, e.image))
         elif isinstance(e, LaserScan):
             update = live.on_scan(LaserScan(e.t_s, e.ranges_m))
-        else:
+        elif isinstance(e, Odometry):
             update = live.on_odometry(Odometry(e.t_s, e.t_prev_s, e.T_prev_curr, e.covariance))
+        else:
+            update = live.on_event(e)
         if update is not None and update.frame % 4 == 0:  # the guidance at a quarter of the camera's rate
             g = update.local.geometry
             x0, x1 = g.x_min_m, g.x_min_m + (g.n_cols - 0.5) * g.resolution_m  # the update's window (half a cell in: no rounding up)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from dem_graph.datasets import CameraFrame, LaserScan, Odometry
+from dem_graph.datasets import CameraFrame, ImuSample, LaserScan, Odometry
 from dem_graph.geometry.se3 import invert
 from dem_graph.sim.scenarios import scenario
 from dem_graph.sim.simulator import SimulatedSequence
@@ -125,9 +125,14 @@ def test_same_seed_same_data_and_different_seed_differs():
             assert np.array_equal(x.image, y.image)
         elif isinstance(x, LaserScan):
             assert np.array_equal(x.ranges_m, y.ranges_m, equal_nan=True)
+        elif isinstance(x, ImuSample):
+            assert np.array_equal(x.gyro_rad_s, y.gyro_rad_s) and np.array_equal(x.accel_mps2, y.accel_mps2)
         else:
             assert np.array_equal(x.T_prev_curr, y.T_prev_curr)
     assert np.array_equal(a.world.terrain.elevation.z_m, b.world.terrain.elevation.z_m)
+    imu_a = np.array([e.gyro_rad_s for e in ea if isinstance(e, ImuSample)])
+    imu_c = np.array([e.gyro_rad_s for e in ec if isinstance(e, ImuSample)])
+    assert len(imu_a) > 100 and not np.array_equal(imu_a[:100], imu_c[:100])
     assert not np.array_equal(a.world.terrain.elevation.z_m, c.world.terrain.elevation.z_m)
     first_a = next(e for e in ea if isinstance(e, CameraFrame)).image
     first_c = next(e for e in ec if isinstance(e, CameraFrame)).image

@@ -1,7 +1,7 @@
 """Event types, the Sequence interface, and the dataset readers and writers."""
 
 from dem_graph.datasets.base import GroundTruth, Sequence
-from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
+from dem_graph.datasets.events import CameraFrame, Event, ImuSample, LaserScan, Odometry
 from dem_graph.datasets.folder import FolderSequence, open_folder_dataset, write_folder_dataset
 
 __all__ = [
@@ -9,6 +9,7 @@ __all__ = [
     "Event",
     "FolderSequence",
     "GroundTruth",
+    "ImuSample",
     "LaserScan",
     "Odometry",
     "Sequence",

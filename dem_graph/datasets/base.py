@@ -81,7 +81,7 @@ def read_ahead(items: Iterable[_Item], depth: int = 4) -> Iterator[_Item]:
 
 
 # the streams every reader merges, in this order (:func:`merged_order`'s stream numbers)
-ODOMETRY_STREAM, LASER_STREAM, CAMERA_STREAM = 0, 1, 2
+ODOMETRY_STREAM, LASER_STREAM, CAMERA_STREAM, IMU_STREAM = 0, 1, 2, 3  # at equal times, in this order
 
 
 def merged_order(*stream_times) -> list[tuple[int, int]]:
@@ -140,6 +140,11 @@ class Sequence(abc.ABC):
 
     @property
     def has_odometry(self) -> bool:
+        return False
+
+    @property
+    def has_imu(self) -> bool:
+        """Whether :meth:`events` yields :class:`~dem_graph.datasets.events.ImuSample` events (in the rig's ``imu`` frame)."""
         return False
 
     def event_count(self) -> int | None:

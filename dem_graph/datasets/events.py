@@ -46,4 +46,16 @@ class Odometry:
     index: int = 0
 
 
-Event = CameraFrame | LaserScan | Odometry
+@dataclass(frozen=True)
+class ImuSample:
+    """One inertial measurement at ``t_s``, in the IMU's own frame (the rig's ``imu.T_body_imu``):
+    the angular rate ``gyro_rad_s`` (3,) and the specific force ``accel_mps2`` (3,), which reads
+    +9.81 m/s^2 up when the IMU is at rest (gravity's reaction, as every MEMS part reports it)."""
+
+    t_s: float
+    gyro_rad_s: np.ndarray = field(repr=False)
+    accel_mps2: np.ndarray = field(repr=False)
+    index: int = 0
+
+
+Event = CameraFrame | LaserScan | Odometry | ImuSample

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from dem_graph.datasets.base import GroundTruth, Sequence
-from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
+from dem_graph.datasets.events import CameraFrame, Event, ImuSample, LaserScan, Odometry
 from dem_graph.datasets.folder import write_folder_dataset
 from dem_graph.errors import DatasetError, DemGraphError
 
@@ -124,6 +124,10 @@ class FaultySequence(Sequence):
     def has_odometry(self) -> bool:
         return self.base.has_odometry
 
+    @property
+    def has_imu(self) -> bool:
+        return self.base.has_imu
+
     def run_settings(self) -> dict:
         return self.base.run_settings()
 
@@ -134,7 +138,7 @@ class FaultySequence(Sequence):
         """The wrapped log's events with the faults put in, renumbered per stream. Raises
         :class:`FaultSequenceError` at the end when the faults left no camera frame of the log's."""
         f = self.faults
-        counts = {CameraFrame: 0, LaserScan: 0, Odometry: 0}
+        counts = {CameraFrame: 0, LaserScan: 0, Odometry: 0, ImuSample: 0}
         self.spans_s, self.hits = {}, {}
         for event in self.base.events():
             t = event.t_s

@@ -10,30 +10,34 @@ A dataset is one folder::
     DIR/laser.npz                     t_s float64 (N,); ranges_m float32 (N,B), B = the rig's beam count
     DIR/odometry.npz                  t_s, t_prev_s float64 (N,); T_prev_curr float64 (N,4,4);
                                       covariance float64 (N,6,6). Absent when the sequence has no odometry
+    DIR/imu.npz                       t_s float64 (N,); gyro_rad_s, accel_mps2 float64 (N,3), in the IMU's frame
+                                      (rig.yaml's ``imu.T_body_imu``). Absent when the sequence has no IMU; when
+                                      present, rig.yaml must have an ``imu`` section
     DIR/ground_truth/trajectory.tum   ground-truth T_world_body (TUM text), when ground truth exists
     DIR/ground_truth/elevation.tif    ground-truth terrain (GeoTIFF, band "elevation"), when known
 
 ``dataset.yaml`` holds ``format: dem_graph-folder``, ``version: 1``, ``name``, ``t_start_s``,
 ``T_world_body_initial`` (the body pose at ``t_start_s``, a 4x4 nested list, row-major),
-``counts`` (``frames``, ``scans``, ``odometry``), ``has_ground_truth`` and a free-form
-``description``.
+``counts`` (``frames``, ``scans``, ``odometry`` and, only when there is an imu.npz, ``imu``; a
+dataset without the key has no IMU sample), ``has_ground_truth`` and a free-form ``description``.
 
 Conventions: times in seconds, ranges in metres, NaN range = no return. Poses are ``T_world_body``
 (maps body coordinates to world coordinates). Odometry ``T_prev_curr`` is the body pose at ``t_s``
 in the body frame at ``t_prev_s``; its covariance is in gtsam's tangent order [rotation,
-translation] (rad^2, m^2). Within each stream times strictly increase; no event is before
+translation] (rad^2, m^2). IMU samples hold the angular rate (rad/s) and the specific force
+(m/s^2, reading +9.81 up at rest), every value finite. Within each stream times strictly increase; no event is before
 ``t_start_s``. Every float is written exactly (repr in text files, native dtype in npz), so a
 dataset read and written again is identical. The ``index`` of each event is its position in its
 stream. Events are replayed merged in time order; at equal times odometry comes first, then laser,
-then camera.
+then camera, then IMU.
 
 :class:`FolderSequence` reads and validates every small file when it is opened and reads images
 lazily while :meth:`FolderSequence.events` iterates. :func:`write_folder_dataset` writes any
 :class:`Sequence` in this format, streaming its images to disk.
 
 Beyond the format, the reader holds a log to :class:`~dem_graph.datasets.checks.InputChecks`
-(:mod:`dem_graph.datasets.checks`): on open it refuses a clock jump in camera.csv, laser.npz or
-odometry.npz, an odometry covariance that is not one, and a first image of another size than the
+(:mod:`dem_graph.datasets.checks`): on open it refuses a clock jump in camera.csv, laser.npz,
+odometry.npz or imu.npz, an odometry covariance that is not one, and a first image of another size than the
 rig's camera; it repairs all-zero (unknown) covariances, skips odometry increments beyond the
 vehicle's motion and says when there is no laser scan or no valid return, each with one warning. While
 iterating it refuses any image of the wrong size and marks frames without texture or repeating the one
@@ -53,7 +57,17 @@ import cv2
 import numpy as np
 import yaml
 
-from dem_graph.datasets.base import LASER_STREAM, ODOMETRY_STREAM, GroundTruth, Sequence, first_not_increasing, merged_order, read_ahead
+from dem_graph.datasets.base import (
+    CAMERA_STREAM,
+    IMU_STREAM,
+    LASER_STREAM,
+    ODOMETRY_STREAM,
+    GroundTruth,
+    Sequence,
+    first_not_increasing,
+    merged_order,
+    read_ahead,
+)
 from dem_graph.datasets.checks import (
     InputChecks,
     TextureWatch,
@@ -65,7 +79,7 @@ from dem_graph.datasets.checks import (
     repair_unknown_covariances,
     warn_if_no_laser,
 )
-from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
+from dem_graph.datasets.events import CameraFrame, Event, ImuSample, LaserScan, Odometry
 from dem_graph.errors import ConfigError, DatasetError
 from dem_graph.geometry.rig import CameraSpec, SensorRig, load_rig, save_rig
 from dem_graph.geometry.se3 import check_pose
@@ -82,6 +96,7 @@ RIG_YAML = "rig.yaml"
 CAMERA_CSV = "camera.csv"
 LASER_NPZ = "laser.npz"
 ODOMETRY_NPZ = "odometry.npz"
+IMU_NPZ = "imu.npz"
 IMAGES_DIR = "images"
 GROUND_TRUTH_DIR = "ground_truth"
 GT_TRAJECTORY = "ground_truth/trajectory.tum"
@@ -89,7 +104,7 @@ GT_ELEVATION = "ground_truth/elevation.tif"
 CAMERA_HEADER = ["index", "t_s", "file"]
 
 _POSE_TOL = 1e-6
-# merge priority at equal times
+_NO_IMU_SECTION = "the rig has no imu section; add one to rig.yaml with T_body_imu and the noise densities"
 
 
 # ----------------------------------------------------------------------------------------------
@@ -102,9 +117,7 @@ def _check_times(path: Path, name: str, t: np.ndarray, t_start_s: float) -> None
         raise DatasetError(path, f"{name}[{i}] is NaN or infinite")
     i = first_not_increasing(t)
     if i is not None:
-        raise DatasetError(
-            path, f"{name} is not strictly increasing at index {i} ({float(t[i])!r} after {float(t[i - 1])!r})"
-        )
+        raise DatasetError(path, f"{name} is not strictly increasing at index {i} ({float(t[i])!r} after {float(t[i - 1])!r})")
     if len(t) and t[0] < t_start_s:
         raise DatasetError(path, f"{name}[0] = {float(t[0])!r} is before t_start_s = {t_start_s!r}")
 
@@ -161,11 +174,22 @@ def _check_odometry(
     check_covariances(path, covariance)  # all-zero ones (unknown) pass: the reader repairs them
 
 
+def _check_imu(path: Path, t_s: np.ndarray, gyro_rad_s: np.ndarray, accel_mps2: np.ndarray, t_start_s: float) -> None:
+    _check_float_array(path, "t_s", t_s, ("N",))
+    n = len(t_s)
+    _check_float_array(path, "gyro_rad_s", gyro_rad_s, (n, 3))
+    _check_float_array(path, "accel_mps2", accel_mps2, (n, 3))
+    _check_times(path, "t_s", t_s, t_start_s)
+    for name, values in (("gyro_rad_s", gyro_rad_s), ("accel_mps2", accel_mps2)):
+        finite = np.all(np.isfinite(values), axis=1)
+        if not np.all(finite):
+            i = int(np.argmin(finite))
+            raise DatasetError(path, f"sample {i}: {name} {[float(x) for x in values[i]]} contains NaN or infinite values")
+
+
 def _check_image(path: Path, image: np.ndarray) -> None:
     if image.dtype != np.uint8 or not (image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3)) or image.size == 0:
-        raise DatasetError(
-            path, f"expected an 8-bit grey (H,W) or BGR (H,W,3) image, got dtype {image.dtype} shape {image.shape}"
-        )
+        raise DatasetError(path, f"expected an 8-bit grey (H,W) or BGR (H,W,3) image, got dtype {image.dtype} shape {image.shape}")
 
 
 def _initial_pose(path: Path, T) -> np.ndarray:
@@ -213,6 +237,9 @@ def _read_metadata(path: Path) -> dict:
         n = counts.get(key)
         if isinstance(n, bool) or not isinstance(n, int) or n < 0:
             raise DatasetError(path, f"counts.{key} must be a non-negative integer, got {n!r}")
+    n_imu = counts.get("imu", 0)  # optional: datasets written before the IMU stream have none
+    if isinstance(n_imu, bool) or not isinstance(n_imu, int) or n_imu < 0:
+        raise DatasetError(path, f"counts.imu must be a non-negative integer, got {n_imu!r}")
     if not isinstance(data["has_ground_truth"], bool):
         raise DatasetError(path, "has_ground_truth must be true or false")
     description = data.get("description", "")
@@ -224,7 +251,7 @@ def _read_metadata(path: Path) -> dict:
         "name": data["name"],
         "t_start_s": float(t0),
         "T_world_body_initial": _initial_pose(path, data["T_world_body_initial"]),
-        "counts": {k: counts[k] for k in ("frames", "scans", "odometry")},
+        "counts": {**{k: counts[k] for k in ("frames", "scans", "odometry")}, "imu": n_imu},
         "has_ground_truth": data["has_ground_truth"],
         "description": description,
     }
@@ -260,7 +287,9 @@ def _read_camera_csv(path: Path, root: Path, t_start_s: float) -> tuple[np.ndarr
         if not file_text:
             raise DatasetError(path, f"line {line_no}: empty file name")
         if _outside(root, file_text):
-            raise DatasetError(path, f"line {line_no}: file {file_text!r} lies outside the dataset folder: give a path inside it, relative to it")
+            raise DatasetError(
+                path, f"line {line_no}: file {file_text!r} lies outside the dataset folder: give a path inside it, relative to it"
+            )
         image_path = root / file_text
         if not image_path.is_file():
             raise DatasetError(image_path, f"image listed in {CAMERA_CSV} (line {line_no}) not found")
@@ -268,8 +297,8 @@ def _read_camera_csv(path: Path, root: Path, t_start_s: float) -> tuple[np.ndarr
             raise DatasetError(path, f"line {line_no}: t_s is NaN or infinite")
         if times and not t > times[-1]:
             raise DatasetError(
-                path, f"line {line_no}: frame {position} time {t!r} is not after the previous {times[-1]!r} "
-                "(times must be strictly increasing)"
+                path,
+                f"line {line_no}: frame {position} time {t!r} is not after the previous {times[-1]!r} (times must be strictly increasing)",
             )
         times.append(t)
         files.append(image_path)
@@ -358,9 +387,7 @@ class FolderSequence(Sequence):
         if self._has_odometry:
             _require_file(odometry_path, "odometry")
             odo = read_npz(odometry_path, ("t_s", "t_prev_s", "T_prev_curr", "covariance"))
-            _check_odometry(
-                odometry_path, odo["t_s"], odo["t_prev_s"], odo["T_prev_curr"], odo["covariance"], self._t_start_s
-            )
+            _check_odometry(odometry_path, odo["t_s"], odo["t_prev_s"], odo["T_prev_curr"], odo["covariance"], self._t_start_s)
             self._odo = {k: v.astype(np.float64) for k, v in odo.items()}
             check_time_jumps(odometry_path, self._odo["t_s"], self._t_start_s, self.input_checks, lambda i: f"t_s[{i}]")
             self._odo["covariance"] = repair_unknown_covariances(
@@ -376,6 +403,21 @@ class FolderSequence(Sequence):
                 "covariance": np.zeros((0, 6, 6)),
             }
 
+        imu_path = root / IMU_NPZ
+        self._has_imu = imu_path.exists()
+        if self._has_imu:
+            _require_file(imu_path, "IMU samples")
+            if self._rig.imu is None:
+                raise DatasetError(imu_path, _NO_IMU_SECTION)
+            imu = read_npz(imu_path, ("t_s", "gyro_rad_s", "accel_mps2"))
+            _check_imu(imu_path, imu["t_s"], imu["gyro_rad_s"], imu["accel_mps2"], self._t_start_s)
+            self._imu = {k: v.astype(np.float64) for k, v in imu.items()}
+            check_time_jumps(imu_path, self._imu["t_s"], self._t_start_s, self.input_checks, lambda i: f"t_s[{i}]")
+        else:
+            if counts["imu"]:
+                raise DatasetError(imu_path, f"not found, but {DATASET_YAML} counts {counts['imu']} imu samples")
+            self._imu = {"t_s": np.zeros(0), "gyro_rad_s": np.zeros((0, 3)), "accel_mps2": np.zeros((0, 3))}
+
         for key, n, source in (
             ("frames", len(self._frame_t_s), camera_path),
             ("scans", len(self._scan_t_s), laser_path),
@@ -383,6 +425,8 @@ class FolderSequence(Sequence):
         ):
             if counts[key] != n:
                 raise DatasetError(source, f"holds {n} {key} but {DATASET_YAML} counts {counts[key]}")
+        if counts["imu"] != self.n_imu:
+            raise DatasetError(imu_path, f"holds {self.n_imu} imu samples but {DATASET_YAML} counts {counts['imu']}")
 
         self._ground_truth: GroundTruth | None = None
         if meta["has_ground_truth"]:
@@ -398,7 +442,7 @@ class FolderSequence(Sequence):
         self._odometry_kept = np.flatnonzero(plausible_increments(odometry_path, self._odo["T_prev_curr"], dt_s, self.input_checks))
         self._order = [
             (kind, int(self._odometry_kept[i]) if kind == ODOMETRY_STREAM else i)
-            for kind, i in merged_order(self._odo["t_s"][self._odometry_kept], self._scan_t_s, self._frame_t_s)
+            for kind, i in merged_order(self._odo["t_s"][self._odometry_kept], self._scan_t_s, self._frame_t_s, self._imu["t_s"])
         ]
 
     @property
@@ -422,6 +466,10 @@ class FolderSequence(Sequence):
         return self._has_odometry
 
     @property
+    def has_imu(self) -> bool:
+        return self._has_imu
+
+    @property
     def n_frames(self) -> int:
         return len(self._frame_t_s)
 
@@ -437,6 +485,10 @@ class FolderSequence(Sequence):
     def n_odometry(self) -> int:
         return len(self._odo["t_s"])
 
+    @property
+    def n_imu(self) -> int:
+        return len(self._imu["t_s"])
+
     def event_count(self) -> int:
         return len(self._order)
 
@@ -444,13 +496,13 @@ class FolderSequence(Sequence):
         return self._scan_t_s.copy(), self._scan_ranges_m.astype(float)
 
     def events(self) -> Iterator[Event]:
-        """Every event in time order (odometry, then laser, then camera at equal times); images read lazily.
+        """Every event in time order (odometry, then laser, camera and IMU at equal times); images read lazily.
 
         Odometry increments beyond the vehicle's motion are left out; frames without texture, or
         bit-identical to the frame before (a frozen camera), are marked ``textureless``. Raises :class:`DatasetError` naming the image when a PNG is missing, cannot be
         decoded or is not the rig's size.
         """
-        odo = self._odo
+        odo, imu = self._odo, self._imu
         camera = self._rig.camera
         images = read_ahead(_read_frame(path, camera) for path in self._frame_files)  # camera frames come in index order
         texture = TextureWatch(self.path / IMAGES_DIR, self.input_checks)
@@ -465,14 +517,16 @@ class FolderSequence(Sequence):
                 )
             elif kind == LASER_STREAM:
                 yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges_m[i].copy(), i)
-            else:
+            elif kind == CAMERA_STREAM:
                 image, std_dn = next(images)
                 yield texture.frame(CameraFrame(float(self._frame_t_s[i]), image, i), std_dn, self._frame_files[i])
+            elif kind == IMU_STREAM:
+                yield ImuSample(float(imu["t_s"][i]), imu["gyro_rad_s"][i].copy(), imu["accel_mps2"][i].copy(), i)
 
     def __repr__(self) -> str:
         return (
             f"FolderSequence({str(self.path)!r}, name={self.name!r}, frames={self.n_frames}, "
-            f"scans={self.n_scans}, odometry={self.n_odometry})"
+            f"scans={self.n_scans}, odometry={self.n_odometry}, imu={self.n_imu})"
         )
 
 
@@ -500,7 +554,9 @@ def write_folder_dataset(
     ``sequence.events()`` is consumed once; images are written as they arrive, never held together.
     ``out_dir`` must not exist or be empty. ``description`` defaults to the sequence's
     ``description`` attribute, if it has one. Ranges are stored as float32 and the ground-truth
-    elevation as float32, so those round-trip exactly only if they already are float32.
+    elevation as float32, so those round-trip exactly only if they already are float32. IMU samples
+    go to ``imu.npz`` when the sequence has an IMU (``has_imu``) or yields IMU samples, which needs a
+    rig with an ``imu`` section.
     ``dataset.yaml`` is written last. Raises :class:`DatasetError` naming the file concerned if the
     sequence breaks the format (for example times that do not increase within a stream, or scans
     with the wrong number of beams).
@@ -530,7 +586,8 @@ def write_folder_dataset(
     frame_t, frame_files = [], []
     scan_t, scan_ranges = [], []
     odo_t, odo_t_prev, odo_T, odo_cov = [], [], [], []
-    camera_path, laser_path, odometry_path = out / CAMERA_CSV, out / LASER_NPZ, out / ODOMETRY_NPZ
+    imu_t, imu_gyro, imu_accel = [], [], []
+    camera_path, laser_path, odometry_path, imu_path = out / CAMERA_CSV, out / LASER_NPZ, out / ODOMETRY_NPZ, out / IMU_NPZ
     image_writer = _BackgroundPngWriter()
     try:
         for event in progress(sequence.events(), total=sequence.event_count(), desc=progress_desc, unit="event"):
@@ -553,9 +610,7 @@ def write_folder_dataset(
             elif isinstance(event, LaserScan):
                 ranges = np.asarray(event.ranges_m)
                 if ranges.shape != (beam_count,):
-                    raise DatasetError(
-                        laser_path, f"scan {len(scan_t)}: {ranges.shape} ranges, the rig's laser has {beam_count} beams"
-                    )
+                    raise DatasetError(laser_path, f"scan {len(scan_t)}: {ranges.shape} ranges, the rig's laser has {beam_count} beams")
                 scan_t.append(float(event.t_s))
                 scan_ranges.append(ranges.astype(np.float32))
             elif isinstance(event, Odometry):
@@ -563,6 +618,12 @@ def write_folder_dataset(
                 odo_t_prev.append(float(event.t_prev_s))
                 odo_T.append(np.asarray(event.T_prev_curr, dtype=np.float64))
                 odo_cov.append(np.asarray(event.covariance, dtype=np.float64))
+            elif isinstance(event, ImuSample):
+                if rig.imu is None:
+                    raise DatasetError(imu_path, _NO_IMU_SECTION)
+                imu_t.append(float(event.t_s))
+                imu_gyro.append(np.asarray(event.gyro_rad_s, dtype=np.float64))
+                imu_accel.append(np.asarray(event.accel_mps2, dtype=np.float64))
             else:
                 raise DatasetError(out, f"unknown event type {type(event).__name__}")
     finally:
@@ -590,6 +651,19 @@ def write_folder_dataset(
         _check_odometry(odometry_path, **odometry, t_start_s=t_start_s)
         _write(odometry_path, lambda p: np.savez(p, **odometry))
 
+    # imu.npz
+    write_imu = sequence.has_imu or bool(imu_t)
+    if write_imu:
+        if rig.imu is None:
+            raise DatasetError(imu_path, _NO_IMU_SECTION)
+        imu = {
+            "t_s": np.array(imu_t, dtype=np.float64),
+            "gyro_rad_s": _stack_checked(imu_path, "gyro_rad_s", imu_gyro, (3,)),
+            "accel_mps2": _stack_checked(imu_path, "accel_mps2", imu_accel, (3,)),
+        }
+        _check_imu(imu_path, **imu, t_start_s=t_start_s)
+        _write(imu_path, lambda p: np.savez(p, **imu))
+
     # ground truth
     ground_truth = sequence.ground_truth
     if ground_truth is not None:
@@ -604,7 +678,7 @@ def write_folder_dataset(
         "name": str(sequence.name),
         "t_start_s": t_start_s,
         "T_world_body_initial": _float_list(T_world_body_initial),
-        "counts": {"frames": len(frame_t), "scans": len(scan_t), "odometry": len(odo_t)},
+        "counts": {"frames": len(frame_t), "scans": len(scan_t), "odometry": len(odo_t), **({"imu": len(imu_t)} if write_imu else {})},
         "has_ground_truth": ground_truth is not None,
         "description": description,
     }
@@ -613,7 +687,7 @@ def write_folder_dataset(
     return out
 
 
-def _stack_checked(path: Path, name: str, items: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
+def _stack_checked(path: Path, name: str, items: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
     for i, a in enumerate(items):
         if a.shape != shape:
             raise DatasetError(path, f"{name}[{i}] has shape {a.shape}, expected {shape}")

@@ -37,7 +37,9 @@ Frames (all right-handed, metres):
 - world, raw layout: east-north-up, from the OXTS latitude and longitude through the Mercator
   projection with the scale of the first latitude, as the KITTI development kit describes; its
   origin is the first OXTS position. OXTS roll, pitch and yaw give the IMU's orientation
-  (``Rz(yaw) Ry(pitch) Rx(roll)``), ``T_body_imu = T_body_lidar @ inv(T_imu_to_velo)``.
+  (``Rz(yaw) Ry(pitch) Rx(roll)``), ``T_body_imu = T_body_lidar @ T_velo_imu``, ``T_velo_imu`` being
+  ``[R|T]`` of ``calib_imu_to_velo.txt`` (it maps IMU coordinates to Velodyne coordinates).
+- imu, raw layout: the OXTS unit's own frame (x forward, y left, z up), ``T_body_imu`` as above.
 
 Odometry: the odometry layout has none (the estimators then use their constant-velocity model).
 The raw layout's OXTS velocities give increments: the forward, leftward and upward velocity and
@@ -45,6 +47,13 @@ angular rate (``vf vl vu``, ``wf wl wu``, in the heading frame) are turned into 
 the OXTS roll and pitch, averaged over consecutive samples, and integrated as a constant twist
 over each interval; their covariance is :class:`~dem_graph.geometry.rig.OdometrySpec`'s for the
 distance travelled.
+
+IMU: the raw layout's OXTS records also hold the unit's raw inertial measurements, the
+accelerations ``ax ay az`` and angular rates ``wx wy wz`` in its own frame; each record is an
+:class:`~dem_graph.datasets.events.ImuSample` at the record's time stamp (10 Hz in the synced
+drives), and the rig's ``imu`` is an :class:`~dem_graph.geometry.rig.ImuSpec` with the RT3003's
+noise figures (:func:`oxts_imu_spec`). ``ax ay az`` are specific force already (they hold gravity's
+reaction: see :data:`OXTS_ACCEL`) and are passed on unchanged. The odometry layout has no IMU.
 
 Ground truth: the trajectory, and :attr:`ground_truth`'s elevation, the reference ground built from
 all 64 rings of every scan placed with the ground-truth poses
@@ -59,13 +68,24 @@ import math
 from collections.abc import Iterator
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 import yaml
 
-from dem_graph.datasets.base import LASER_STREAM, ODOMETRY_STREAM, GroundTruth, Sequence, first_not_increasing, merged_order, read_ahead
-from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
+from dem_graph.datasets.base import (
+    CAMERA_STREAM,
+    IMU_STREAM,
+    LASER_STREAM,
+    ODOMETRY_STREAM,
+    GroundTruth,
+    Sequence,
+    first_not_increasing,
+    merged_order,
+    read_ahead,
+)
+from dem_graph.datasets.events import CameraFrame, Event, ImuSample, LaserScan, Odometry
 from dem_graph.datasets.velodyne import (
     RingLaser,
     RingSplitError,
@@ -81,7 +101,7 @@ from dem_graph.datasets.velodyne import (
 )
 from dem_graph.errors import DatasetError
 from dem_graph.geometry.grid import ElevationGrid
-from dem_graph.geometry.rig import CameraSpec, LaserSpec, OdometrySpec, SensorRig, validated
+from dem_graph.geometry.rig import CameraSpec, ImuSpec, LaserSpec, OdometrySpec, SensorRig, validated
 from dem_graph.geometry.se3 import invert, make_pose, nearest_pose, rotation_from_rpy
 from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.progress import progress
@@ -196,7 +216,7 @@ KITTI_SETTINGS = Path(__file__).with_name("settings") / "kitti.yaml"
 
 
 class _KittiSequence(Sequence):
-    """Camera frames and one Velodyne ring (and odometry, when the log has it) merged in time order."""
+    """Camera frames and one Velodyne ring (and odometry and IMU samples, when the log has them) merged in time order."""
 
     layout = "kitti"  # the format name :func:`dem_graph.datasets.open.open_dataset` knows it by
 
@@ -229,12 +249,14 @@ class _KittiSequence(Sequence):
         T_world_body_initial: np.ndarray,
         t_start_s: float,
         calib_path: Path | None = None,
+        imu: OxtsImu | None = None,
     ):
         self.name = name
         self._frame_t_s, self._frame_files = frame_t_s, frame_files
         self._scan_t_s, self._scan_files = scan_t_s, scan_files
         self._truth = truth
         self._odometry = odometry
+        self._imu = imu
         self._t_start_s = float(t_start_s)
         self._T0 = np.array(T_world_body_initial, dtype=float)
         self.T_body_lidar = make_pose(np.eye(3), [0.0, 0.0, lidar_height_m])
@@ -273,10 +295,12 @@ class _KittiSequence(Sequence):
                 rate_hz=scan_rate,
             ),
             odometry=OdometrySpec(rate_hz=rate) if odometry else None,
+            imu=imu.spec if imu is not None else None,
         )
         self._elevation: ElevationGrid | None = None
         self._ranges_cache: dict[int, np.ndarray] = {}  # scan index -> the ring's ranges
-        self._order = merged_order([o.t_s for o in odometry], scan_t_s, frame_t_s)
+        # the stream numbers of datasets.base: odometry, laser, camera, IMU (at equal times in that order)
+        self._order = merged_order([o.t_s for o in odometry], scan_t_s, frame_t_s, imu.t_s if imu is not None else [])
 
     def _make_ring_laser(self, ring: int | None, ground_distance_m: float, half_fov_deg: float, step_deg: float):
         if not self._scan_files:
@@ -340,6 +364,11 @@ class _KittiSequence(Sequence):
         return bool(self._odometry)
 
     @property
+    def has_imu(self) -> bool:
+        """True for a raw drive (its OXTS records' inertial measurements), False for the odometry layout."""
+        return self._imu is not None
+
+    @property
     def n_frames(self) -> int:
         return len(self._frame_t_s)
 
@@ -373,8 +402,11 @@ class _KittiSequence(Sequence):
                 yield self._odometry[i]
             elif kind == LASER_STREAM:
                 yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges(i), i)
-            else:
+            elif kind == CAMERA_STREAM:
                 yield CameraFrame(float(self._frame_t_s[i]), next(images), i)
+            elif kind == IMU_STREAM:
+                imu = self._imu
+                yield ImuSample(float(imu.t_s[i]), imu.gyro_rad_s[i].copy(), imu.accel_mps2[i].copy(), i)
 
     @property
     def ground_truth(self) -> GroundTruth | None:
@@ -562,17 +594,108 @@ def odometry_from_oxts(t_s: np.ndarray, oxts: np.ndarray, T_body_imu: np.ndarray
     return out
 
 
+# an OXTS record's 30 fields, in order (the drive's oxts/dataformat.txt, whose third acceleration is misnamed "ay")
+OXTS_FIELDS = (
+    "lat", "lon", "alt", "roll", "pitch", "yaw", "vn", "ve", "vf", "vl", "vu",
+    "ax", "ay", "az", "af", "al", "au", "wx", "wy", "wz", "wf", "wl", "wu",
+    "pos_accuracy", "vel_accuracy", "navstat", "numsats", "posmode", "velmode", "orimode",
+)  # fmt: skip
+OXTS_GYRO = slice(17, 20)
+"""``wx wy wz``: angular rate about the unit's x (forward), y (left), z (up), rad/s. On drive 0013 they
+integrate (trapezoid) over its 4.7 s to the recorded yaw's and pitch's changes: wz -0.0173 rad against
+-0.0182, wy -0.0066 against -0.0069 (pitch positive nose down, a turn about +y)."""
+OXTS_ACCEL = slice(11, 14)
+"""``ax ay az``: acceleration along the unit's x (forward), y (left), z (up), m/s^2. They are specific
+force, gravity's reaction included, as :class:`~dem_graph.datasets.events.ImuSample` wants them, and
+are passed on unchanged. Measured on drive 0013 of 2011_09_26 (48 records at 11-12 m/s, braking at
+0.23 m/s^2, roll and pitch under 0.9 degree): the mean of ``|(ax, ay, az)|`` is 9.800 m/s^2 (9.42 to
+10.16; it would be about 0.3 had gravity been taken out), the mean ``az`` 9.791 against 9.809 for
+gravity's reaction at the recorded roll and pitch, and the three turned to the world by the recorded
+roll, pitch and yaw average 9.792 m/s^2 up (standard deviation 0.18, so 0.026 for the mean) against
+gravity's 9.809 there. The mean ``ax``, -0.297, is the braking (-0.230, from ``vf``) plus gravity's
+reaction along the nose, pitched 0.34 degree down (-0.058). tests/test_kitti_imu.py checks this."""
+_OXTS_IMU_FIELDS = tuple(range(OXTS_ACCEL.start, OXTS_ACCEL.stop)) + tuple(range(OXTS_GYRO.start, OXTS_GYRO.stop))
+
+
 def _read_oxts(files: list[Path]) -> np.ndarray:
+    """(N,30) OXTS records, one file each. A record without its 30 numbers, or whose inertial
+    measurements (``ax ay az wx wy wz``) are not finite, is a :class:`DatasetError` naming the file
+    and the field."""
     rows = []
+    n = len(OXTS_FIELDS)
     for path in files:
-        try:
-            values = np.array(path.read_text().split(), dtype=float)
-        except ValueError:
-            raise DatasetError(path, "not an OXTS record (30 numbers)") from None
-        if values.size < 23:
-            raise DatasetError(path, f"{values.size} numbers, an OXTS record has 30")
-        rows.append(values[:30] if values.size >= 30 else np.concatenate([values, np.zeros(30 - values.size)]))
-    return np.array(rows).reshape(-1, 30)
+        tokens = path.read_text(errors="replace").split()
+        if len(tokens) != n:
+            missing = f"{'a field is' if len(tokens) == n - 1 else f'{n - len(tokens)} fields are'} missing" if len(tokens) < n else "too many fields"
+            raise DatasetError(path, f"{len(tokens)} numbers, an OXTS record has {n} ({' '.join(OXTS_FIELDS)}): {missing}")
+        values = np.empty(n)
+        for k, token in enumerate(tokens):
+            try:
+                values[k] = float(token)
+            except ValueError:
+                raise DatasetError(path, f"{OXTS_FIELDS[k]} (field {k + 1} of {n}) is not a number: {token!r}") from None
+        for k in _OXTS_IMU_FIELDS:
+            if not math.isfinite(values[k]):
+                raise DatasetError(path, f"{OXTS_FIELDS[k]} (field {k + 1} of {n}) is {values[k]}: the IMU's accelerations and angular rates must be finite")
+        rows.append(values)
+    return np.array(rows).reshape(-1, n)
+
+
+# The OXTS RT3003 (the unit on KITTI's car, Geiger et al. 2013): no noise density or bias random
+# walk of it was found. The white noise densities and bias random walks are those gtsam's KITTI
+# example uses for KITTI's OXTS records (gtsam examples/Data/KittiEquivBiasedImu_metadata.txt:
+# AccelerometerSigma 0.01, GyroscopeSigma 1.75e-4, AccelerometerBiasSigma 1.67e-4, GyroscopeBiasSigma
+# 2.91e-6, used as continuous-time densities with 100 Hz records). The gyroscope's 1.75e-4 rad/s/sqrt(Hz)
+# is 0.6 deg/sqrt(h), three times the 0.2 deg/sqrt(h) (5.8e-5) of a navigation unit of this class. The
+# synced drives' records come at 10 Hz, so the road's vibration aliases into them: on drive 0013 the
+# records scatter from one to the next (second differences) by 0.04-0.15 m/s^2 and 0.0016-0.0065 rad/s
+# per axis, 0.013-0.046 m/s^2/sqrt(Hz) and 5e-4-2e-3 rad/s/sqrt(Hz) as densities at 10 Hz: larger than
+# either figure, motion the 10 Hz samples do not resolve rather than sensor noise.
+RT3003_GYRO_NOISE_DENSITY = 1.75e-4  # rad/s/sqrt(Hz), gtsam's KITTI example
+RT3003_ACCEL_NOISE_DENSITY = 1.0e-2  # m/s^2/sqrt(Hz), gtsam's KITTI example
+RT3003_GYRO_BIAS_RANDOM_WALK = 2.91e-6  # rad/s^2/sqrt(Hz), gtsam's KITTI example
+RT3003_ACCEL_BIAS_RANDOM_WALK = 1.67e-4  # m/s^3/sqrt(Hz), gtsam's KITTI example
+# the bias left at the start: the OxTS RT3000 manual's angular-rate bias, 0.01 deg/s 1 sigma (as quoted
+# from OxTS-RT500-RT3000-Manual-240215, a later unit of the family); the accelerometer's is assumed
+RT3003_GYRO_BIAS_SIGMA = math.radians(0.01)  # rad/s
+RT3003_ACCEL_BIAS_SIGMA = 0.01  # m/s^2, about 1 mg: assumed
+
+
+def normal_gravity_mps2(lat_deg: float, alt_m: float) -> float:
+    """Gravity's magnitude at a latitude and height: WGS-84's normal gravity (Somigliana's formula)
+    less 3.086e-6 m/s^2 a metre up (9.8095 at drive 0013's 49.01 degrees north, 114 m)."""
+    s2 = math.sin(math.radians(lat_deg)) ** 2
+    return 9.7803253359 * (1.0 + 0.00193185265241 * s2) / math.sqrt(1.0 - 0.00669437999013 * s2) - 3.086e-6 * alt_m
+
+
+def oxts_imu_spec(rate_hz: float, T_body_imu: np.ndarray, gravity_mps2: float, source: Path | None = None) -> ImuSpec:
+    """The rig's ``imu`` for a raw drive: the RT3003's noise figures (above), mounted at ``T_body_imu``."""
+    return validated(
+        ImuSpec,
+        dict(
+            part="OXTS RT3003 (noise densities and bias walks: gtsam's KITTI example; accelerometer bias at the start assumed)",
+            rate_hz=rate_hz,
+            T_body_imu=T_body_imu,
+            gyro_noise_density=RT3003_GYRO_NOISE_DENSITY,
+            accel_noise_density=RT3003_ACCEL_NOISE_DENSITY,
+            gyro_bias_random_walk=RT3003_GYRO_BIAS_RANDOM_WALK,
+            accel_bias_random_walk=RT3003_ACCEL_BIAS_RANDOM_WALK,
+            gyro_bias_sigma=RT3003_GYRO_BIAS_SIGMA,
+            accel_bias_sigma=RT3003_ACCEL_BIAS_SIGMA,
+            gravity_mps2=gravity_mps2,
+        ),
+        source,
+        "imu",
+    )
+
+
+class OxtsImu(NamedTuple):
+    """A raw drive's inertial measurements, one per OXTS record, in the unit's frame."""
+
+    t_s: np.ndarray  # (N,) the OXTS time stamps, seconds after the first
+    gyro_rad_s: np.ndarray  # (N,3) wx wy wz
+    accel_mps2: np.ndarray  # (N,3) ax ay az, specific force
+    spec: ImuSpec
 
 
 def _find_calib(drive: Path, name: str) -> Path:
@@ -649,6 +772,7 @@ class KittiRawSequence(_KittiSequence):
         P_rect = _calib_matrix(cam, f"P_rect_0{self.camera}", (3, 4), cam_path)
         R_rect = make_pose(_calib_matrix(cam, "R_rect_00", (3, 3), cam_path), np.zeros(3))
         T_cam0_velo = make_pose(_calib_matrix(velo, "R", (3, 3), velo_path), _calib_matrix(velo, "T", (3, 1), velo_path)[:, 0])
+        # calib_imu_to_velo.txt maps IMU coordinates to Velodyne coordinates
         T_velo_imu = make_pose(_calib_matrix(imu, "R", (3, 3), imu_path), _calib_matrix(imu, "T", (3, 1), imu_path)[:, 0])
         T_cam_lidar = rectified_camera_from_cam0(P_rect, nearest_pose(R_rect @ T_cam0_velo))
 
@@ -678,8 +802,16 @@ class KittiRawSequence(_KittiSequence):
         T_world_imu = oxts_poses(oxts) if self.truth == "positions" else oxts_velocity_poses(t["oxts"], oxts)
         T_world_body = T_world_imu @ invert(T_body_imu)
         truth = Trajectory.from_poses(t["oxts"], nearest_pose(T_world_body))
-        spec = odometry_spec or OdometrySpec(rate_hz=1.0 / float(np.median(np.diff(t["oxts"]))) if len(t["oxts"]) > 1 else 10.0)
+        oxts_rate_hz = 1.0 / float(np.median(np.diff(t["oxts"]))) if len(t["oxts"]) > 1 else 10.0
+        spec = odometry_spec or OdometrySpec(rate_hz=oxts_rate_hz)
         odometry = odometry_from_oxts(t["oxts"], oxts, T_body_imu, spec)
+        imu_samples = OxtsImu(
+            t["oxts"].copy(),
+            oxts[:, OXTS_GYRO].copy(),
+            oxts[:, OXTS_ACCEL].copy(),  # specific force already (see OXTS_ACCEL): unchanged
+            # the odometry's T_body_imu, its rotation (given to 7 digits: 8e-8 from orthonormal on drive 0013) made exactly one
+            oxts_imu_spec(oxts_rate_hz, nearest_pose(T_body_imu), normal_gravity_mps2(oxts[0, 0], oxts[0, 2]), imu_path),
+        )
         t_start = float(t["oxts"][0])
         keep_img = t["image"] >= t_start
         keep_scan = t["velodyne"] >= t_start
@@ -708,6 +840,7 @@ class KittiRawSequence(_KittiSequence):
             truth.poses_se3[0],
             t_start,
             cam_path,
+            imu_samples,
         )
 
     def __repr__(self) -> str:
@@ -750,9 +883,15 @@ __all__ = [
     "RAW_CAMERAS",
     "RAW_TRUTHS",
     "KittiRawSequence",
+    "OXTS_ACCEL",
+    "OXTS_FIELDS",
+    "OXTS_GYRO",
+    "OxtsImu",
     "kitti_layout",
+    "normal_gravity_mps2",
     "odometry_from_oxts",
     "open_kitti",
+    "oxts_imu_spec",
     "oxts_poses",
     "oxts_twists",
     "oxts_velocity_poses",

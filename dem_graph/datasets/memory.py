@@ -7,7 +7,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from dem_graph.datasets.base import GroundTruth, Sequence
-from dem_graph.datasets.events import Event, Odometry
+from dem_graph.datasets.events import Event, ImuSample, Odometry
 from dem_graph.geometry.rig import SensorRig
 
 
@@ -47,6 +47,10 @@ class InMemorySequence(Sequence):
     @property
     def has_odometry(self) -> bool:
         return any(isinstance(e, Odometry) for e in self._events)
+
+    @property
+    def has_imu(self) -> bool:
+        return any(isinstance(e, ImuSample) for e in self._events)
 
     def event_count(self) -> int:
         return len(self._events)

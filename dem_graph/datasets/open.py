@@ -24,13 +24,14 @@ class DatasetOptions:
     image_topic: str | None = None  # rosbag
     scan_topic: str | None = None  # rosbag
     odometry_topic: str | None = None  # rosbag
+    imu_topic: str | None = None  # rosbag: sensor_msgs/Imu (the rig needs an imu section)
     body_frame: str | None = None  # rosbag: tf frame names for the extrinsics (when tf_static has them)
     camera_frame: str | None = None
     laser_frame: str | None = None
     input_checks: InputChecks | None = None  # folder, rosbag: the limits bad input is held to (None: the defaults)
 
 
-_ROSBAG_ONLY = ("rig", "image_topic", "scan_topic", "odometry_topic", "body_frame", "camera_frame", "laser_frame")
+_ROSBAG_ONLY = ("rig", "image_topic", "scan_topic", "odometry_topic", "imu_topic", "body_frame", "camera_frame", "laser_frame")
 USED_OPTIONS: dict[str, tuple[str, ...]] = {  # the DatasetOptions each format reads
     "folder": ("input_checks",),
     "kitti-odometry": ("sequence", "ring"),
@@ -106,6 +107,7 @@ def open_dataset(path: str | Path, format: str | None = None, options: DatasetOp
             camera_frame=options.camera_frame,
             laser_frame=options.laser_frame,
             checks=options.input_checks,
+            imu_topic=options.imu_topic,
         )
     raise DatasetError(path, f"unknown dataset format {fmt!r}: choose from {', '.join(FORMATS)}")
 

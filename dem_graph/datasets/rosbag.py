@@ -13,16 +13,23 @@ The user names the topics and gives the rig (a rig YAML, :func:`~dem_graph.geome
   the rig's odometry model for the distance travelled. The messages' own covariances are of the
   absolute pose in the odometry frame, often placeholders, and are not used: one warning says how
   many are not covariances at all (all-zero ones, ROS's "unknown", are fine);
+- ``imu_topic`` (optional): ``sensor_msgs/Imu``; each message is an
+  :class:`~dem_graph.datasets.events.ImuSample` at its header stamp, ``angular_velocity`` its gyro
+  (rad/s) and ``linear_acceleration`` its specific force (m/s^2), in the messages' ``header.frame_id``
+  frame (message 0's; a warning when others name another). The rig must have an ``imu`` section (its noise figures; else a :class:`DatasetError`). The
+  orientation and the covariances are not used (ROS's all-zero "unknown" and -1 "not provided" are
+  fine). A message with a value that is not finite is skipped, with one warning counting them;
 - ``/tf_static`` and ``/tf``: when ``body_frame`` with ``camera_frame`` and/or ``laser_frame`` are given
-  and the transforms link them, ``T_body_cam`` / ``T_body_laser`` come from there instead of the rig.
+  and the transforms link them, ``T_body_cam`` / ``T_body_laser`` come from there instead of the rig;
+  likewise ``T_body_imu`` when they link ``body_frame`` to the IMU messages' frame.
 
 Times are the messages' header stamps, seconds. Every stream must be in increasing time order, with
 no jump forward longer than :attr:`~dem_graph.datasets.checks.InputChecks.max_gap_s` between two
 messages (a clock fault: refused). Odometry increments beyond the vehicle's motion are skipped and
 camera frames without texture marked (:mod:`dem_graph.datasets.checks`), each with a warning; a bag
 with no laser scan is warned of. The bag has no ground truth; the initial pose is the identity at
-the first event's time. Scans and odometry are read when the bag is opened, images (with their stamps) once then again lazily while
-:meth:`RosbagSequence.events` iterates.
+the first event's time. Scans, odometry and IMU samples are read when the bag is opened, images (with their stamps) once then again lazily while
+:meth:`RosbagSequence.events` iterates; at equal times the events come odometry, laser, camera, then IMU.
 """
 
 from __future__ import annotations
@@ -36,7 +43,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dem_graph.datasets.base import LASER_STREAM, ODOMETRY_STREAM, Sequence, first_not_increasing, merged_order
+from dem_graph.datasets.base import (
+    CAMERA_STREAM,
+    IMU_STREAM,
+    LASER_STREAM,
+    ODOMETRY_STREAM,
+    Sequence,
+    first_not_increasing,
+    merged_order,
+)
 from dem_graph.datasets.checks import (
     InputChecks,
     TextureWatch,
@@ -47,7 +62,7 @@ from dem_graph.datasets.checks import (
     unknown_covariances,
     warn_if_no_laser,
 )
-from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
+from dem_graph.datasets.events import CameraFrame, Event, ImuSample, LaserScan, Odometry
 from dem_graph.errors import DatasetError, MissingDependencyError
 from dem_graph.geometry.rig import OdometrySpec, PlanarBeams, SensorRig, rig_from_dict
 from dem_graph.geometry.se3 import invert, make_pose, matrix_from_quat_xyzw, nearest_pose
@@ -58,6 +73,7 @@ log = logging.getLogger(__name__)
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+IMU_TYPE = "sensor_msgs/msg/Imu"  # AnyReader gives ROS 1's sensor_msgs/Imu this name too
 TF_TOPICS = ("/tf_static", "/tf")
 
 
@@ -241,25 +257,33 @@ class RosbagSequence(Sequence):
         camera_frame: str | None = None,
         laser_frame: str | None = None,
         checks: InputChecks | None = None,
+        imu_topic: str | None = None,
     ):
         self.input_checks = checks if checks is not None else InputChecks()
         self.path = Path(path)
         self.name = self.path.stem
         self._image_topic, self._scan_topic, self._odometry_topic = image_topic, scan_topic, odometry_topic
+        self._imu_topic = imu_topic
         with open_bag(self.path) as reader:
             self._image_type = check_topic(reader, self.path, image_topic, IMAGE_TYPES)
             check_topic(reader, self.path, scan_topic, (SCAN_TYPE,))
             if odometry_topic is not None:
                 check_topic(reader, self.path, odometry_topic, (ODOMETRY_TYPE,))
+            if imu_topic is not None:
+                check_topic(reader, self.path, imu_topic, (IMU_TYPE,))
+                if rig.imu is None:
+                    raise DatasetError(self._where(imu_topic), _NO_IMU_SECTION)
             tree = self._read_tf(reader)
-            rig = self._rig_with_tf(rig, tree, body_frame, camera_frame, laser_frame)
+            # every message's stamp (the checks), the finite samples, the messages' frame
+            self._imu_msg_t_s, self._imu, imu_frame = self._read_imu(reader) if imu_topic is not None else (np.zeros(0), _no_imu(), None)
+            rig = self._rig_with_tf(rig, tree, body_frame, camera_frame, laser_frame, imu_frame)
             self._rig = rig
             self._scan_t_s, self._scan_ranges = self._read_scans(reader)
             self._odometry = self._read_odometry(reader, tree, body_frame) if odometry_topic is not None else []
             self._frame_t_s = np.array([t for t, _ in self._iter_images(reader, decode=False)])
         self._check_time_jumps()
         warn_if_no_laser(self._where(scan_topic), self._scan_ranges, self._rig.laser)
-        firsts = [a[0] for a in (self._frame_t_s, self._scan_t_s) if len(a)] + [o.t_prev_s for o in self._odometry[:1]]
+        firsts = [a[0] for a in (self._frame_t_s, self._scan_t_s, self._imu["t_s"]) if len(a)] + [o.t_prev_s for o in self._odometry[:1]]
         self._t_start_s = float(min(firsts)) if firsts else 0.0
 
     def _check_time_jumps(self) -> None:
@@ -267,6 +291,8 @@ class RosbagSequence(Sequence):
         streams = [(self._image_topic, self._frame_t_s), (self._scan_topic, self._scan_t_s)]
         if self._odometry_topic is not None:
             streams.append((self._odometry_topic, np.array([o.t_s for o in self._odometry])))
+        if self._imu_topic is not None:
+            streams.append((self._imu_topic, self._imu_msg_t_s))
         for topic, t_s in streams:
             check_time_jumps(self._where(topic), t_s, None, self.input_checks, lambda i: f"message {i}: time")
 
@@ -289,10 +315,13 @@ class RosbagSequence(Sequence):
                     tree.add(tr.header.frame_id, tr.child_frame_id, _transform_from_msg(tr.transform))
         return tree
 
-    def _rig_with_tf(self, rig: SensorRig, tree: TransformTree, body: str | None, camera: str | None, laser: str | None) -> SensorRig:
+    def _rig_with_tf(
+        self, rig: SensorRig, tree: TransformTree, body: str | None, camera: str | None, laser: str | None, imu: str | None = None
+    ) -> SensorRig:
+        """``rig`` with the extrinsics tf gives; ``imu``: the IMU messages' frame_id ("" when they name none)."""
         if body is None:
             return rig
-        camera_spec, laser_spec = rig.camera, rig.laser
+        camera_spec, laser_spec, imu_spec = rig.camera, rig.laser, rig.imu
         if camera is not None:
             T = tree.lookup(body, camera)
             if T is None:
@@ -305,8 +334,20 @@ class RosbagSequence(Sequence):
                 log.warning("tf does not link %s to %s: T_body_laser from the rig", body, laser)
             else:
                 laser_spec = laser_spec.model_copy(update={"T_body_laser": T})
+        if imu is not None and imu_spec is not None:
+            T = tree.lookup(body, imu) if imu else None
+            if T is None:
+                log.warning("tf does not link %s to %s: T_body_imu from the rig", body, imu or f"the frame of {self._imu_topic} (its messages name none)")
+            else:
+                imu_spec = imu_spec.model_copy(update={"T_body_imu": T})
         return rig_from_dict(
-            {**rig.model_dump(), "camera": camera_spec.model_dump(), "laser": laser_spec.model_dump()}, f"{self.path} tf {body}"
+            {
+                **rig.model_dump(),
+                "camera": camera_spec.model_dump(),
+                "laser": laser_spec.model_dump(),
+                "imu": imu_spec.model_dump() if imu_spec is not None else None,
+            },
+            f"{self.path} tf {body}",
         )
 
     def _read_scans(self, reader) -> tuple[np.ndarray, np.ndarray]:
@@ -345,6 +386,35 @@ class RosbagSequence(Sequence):
         keep = plausible_increments(where, np.array([o.T_prev_curr for o in out]), dt_s, self.input_checks)
         return [o for o, k in zip(out, keep) if k]
 
+    def _read_imu(self, reader) -> tuple[np.ndarray, dict[str, np.ndarray], str]:
+        """Every message's stamp (increasing), the samples of those whose values are all finite (the
+        others skipped, with one warning) and the messages' frame_id (message 0's; "" when it names none)."""
+        where = self._where(self._imu_topic)
+        times, values, frames = [], [], {}
+        for i, msg in enumerate(self._messages(reader, self._imu_topic)):
+            times.append(stamp_s(msg.header))
+            w, a = msg.angular_velocity, msg.linear_acceleration
+            values.append((w.x, w.y, w.z, a.x, a.y, a.z))
+            frames.setdefault(str(msg.header.frame_id).lstrip("/"), i)
+        t_s = np.array(times, dtype=float)
+        self._check_increasing(t_s, self._imu_topic)
+        v = np.array(values, dtype=float).reshape(-1, 6)
+        frame = next(iter(frames), "")
+        if len(frames) > 1:
+            others = ", ".join(f"{f!r} from message {i}" for f, i in list(frames.items())[1:])
+            log.warning("%s: the messages name %d frames (%r, then %s): all are taken to be in %r", where, len(frames), frame, others, frame)
+        finite = np.all(np.isfinite(v), axis=1)
+        if not np.all(finite):
+            bad = np.flatnonzero(~finite)
+            log.warning(
+                "%s: %d of %d messages have an angular velocity or linear acceleration that is not finite (first: message %d): skipped",
+                where,
+                len(bad),
+                len(v),
+                int(bad[0]),
+            )
+        return t_s, {"t_s": t_s[finite], "gyro_rad_s": v[finite, :3], "accel_mps2": v[finite, 3:]}, frame
+
     def _iter_images(self, reader, decode: bool = True):
         where = self._where(self._image_topic)
         previous = -np.inf
@@ -376,31 +446,49 @@ class RosbagSequence(Sequence):
     def has_odometry(self) -> bool:
         return bool(self._odometry)
 
+    @property
+    def has_imu(self) -> bool:
+        """Whether an IMU topic was given and holds a sample (in the rig's ``imu`` frame)."""
+        return bool(len(self._imu["t_s"]))
+
     def event_count(self) -> int:
-        return len(self._frame_t_s) + len(self._scan_t_s) + len(self._odometry)
+        return len(self._frame_t_s) + len(self._scan_t_s) + len(self._odometry) + len(self._imu["t_s"])
 
     def laser_scans(self) -> tuple[np.ndarray, np.ndarray]:
         return self._scan_t_s.copy(), self._scan_ranges.astype(float)
 
     def events(self) -> Iterator[Event]:
-        """Odometry, scans and images merged by time (odometry, then laser, then camera at equal times)."""
+        """Odometry, scans, images and IMU samples merged by time (odometry, then laser, camera and IMU at equal times)."""
         with open_bag(self.path) as reader:
             # in the order of _frame_t_s; decoded here, not read ahead in a thread (base.read_ahead): the
             # ROS 2 bag's SQLite connection refuses to be used from another thread
             images = self._iter_images(reader)
             texture = TextureWatch(self._where(self._image_topic), self.input_checks)
-            for kind, i in merged_order([o.t_s for o in self._odometry], self._scan_t_s, self._frame_t_s):
+            imu = self._imu
+            for kind, i in merged_order([o.t_s for o in self._odometry], self._scan_t_s, self._frame_t_s, imu["t_s"]):
                 if kind == ODOMETRY_STREAM:
                     yield self._odometry[i]
                 elif kind == LASER_STREAM:
                     yield LaserScan(float(self._scan_t_s[i]), self._scan_ranges[i].copy(), i)
-                else:
+                elif kind == CAMERA_STREAM:
                     t, image = next(images)
                     check_image_size(f"{self._where(self._image_topic)} message {i}", image, self.rig.camera)
                     yield texture.frame(CameraFrame(t, image, i))
+                elif kind == IMU_STREAM:
+                    yield ImuSample(float(imu["t_s"][i]), imu["gyro_rad_s"][i].copy(), imu["accel_mps2"][i].copy(), i)
 
     def __repr__(self) -> str:
-        return f"RosbagSequence({str(self.path)!r}, frames={len(self._frame_t_s)}, scans={len(self._scan_t_s)}, odometry={len(self._odometry)})"
+        return f"RosbagSequence({str(self.path)!r}, frames={len(self._frame_t_s)}, scans={len(self._scan_t_s)}, odometry={len(self._odometry)}, imu={len(self._imu['t_s'])})"
+
+
+_NO_IMU_SECTION = (
+    "an IMU topic needs the rig to have an imu section: add one to the rig YAML with T_body_imu, rate_hz, "
+    "gyro_noise_density, accel_noise_density, gyro_bias_random_walk, accel_bias_random_walk, gyro_bias_sigma, accel_bias_sigma"
+)
+
+
+def _no_imu() -> dict[str, np.ndarray]:
+    return {"t_s": np.zeros(0), "gyro_rad_s": np.zeros((0, 3)), "accel_mps2": np.zeros((0, 3))}
 
 
 def _warn_unused_covariances(where: str, covariance: np.ndarray) -> None:

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.datasets.events import CameraFrame, ImuSample, LaserScan, Odometry
 from dem_graph.errors import EventOrderError
 from dem_graph.estimators.motion import FrameMotion
 from dem_graph.estimators.settings import MotionConfig
@@ -103,6 +103,10 @@ class Estimator(abc.ABC):
     @abc.abstractmethod
     def on_frame(self, event: CameraFrame) -> FrameRecord | None:
         """Process a frame (or hold it briefly, e.g. until the odometry covering it arrives)."""
+
+    def on_imu(self, event: ImuSample) -> None:  # noqa: B027 - an estimator without IMU use ignores it
+        """An IMU sample (the rig's ``imu`` frame). The default ignores it: a run with or without the
+        stream is then the same run."""
 
     def finish(self) -> None:  # noqa: B027 - a hook with nothing to do by default
         """The log has ended: process anything held back."""

@@ -15,6 +15,10 @@ the poses as they ended up. On ``paper`` seed 6 the start's error was 4.3e6 over
 Levenberg-Marquardt stopped after one iteration, the trajectory 3 m low at the end.
 
 Pose variables: ``X(0)`` is the start pose (with the run's prior), ``X(f + 1)`` frame ``f``'s.
+With an IMU, each frame whose samples were logged also has ``V(f + 1)`` (world velocity) and
+``B(f + 1)`` (biases), tied to the frame before by a ``CombinedImuFactor``; where such a chain
+starts, a prior holds the velocity (the online poses' own, within ``sigma_v0_mps``) and the biases
+(zero, within the rig's spread at the start).
 """
 
 from __future__ import annotations
@@ -25,13 +29,14 @@ from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import B, L, V, X
 
 from dem_graph.errors import DemGraphError, one_line
 from dem_graph.estimators.base import ONLINE_TRAJECTORY, EstimatorResult
 from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
+from dem_graph.estimators.imu_preintegration import preintegrate, preintegration_params
 from dem_graph.estimators.measurement_log import MeasurementLog
-from dem_graph.geometry.rig import SensorRig
+from dem_graph.geometry.rig import ImuSpec, SensorRig
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +66,37 @@ class BatchResult:
         res.counters["batch_build_ms"] = round(1000 * self.build_s)
         res.counters["batch_optimize_ms"] = round(1000 * self.optimize_s)
         return res
+
+
+def imu_chain(mlog: MeasurementLog) -> list[int]:
+    """The frames ``f`` whose IMU factor from frame ``f - 1`` goes into the graph (every frame with
+    logged samples but the first)."""
+    return [f for f in range(1, mlog.n_frames) if mlog.imu and mlog.imu[f] is not None and mlog.t_s[f] > mlog.t_s[f - 1]]
+
+
+def add_imu_factors(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, mlog: MeasurementLog, spec: ImuSpec, poses: np.ndarray, sigma_v0_mps: float) -> int:
+    """The IMU's factors between consecutive frames, their velocity and bias variables started at
+    the poses' finite-difference velocities and zero biases, and the priors where a chain starts;
+    returns how many factors."""
+    params = preintegration_params(spec)
+    zero = gtsam.imuBias.ConstantBias()
+    t = np.asarray(mlog.t_s)
+    v_world = np.gradient(poses[:, :3, 3], t, axis=0) if len(t) > 1 else np.zeros((len(t), 3))
+    sigma_bias = np.maximum(np.r_[np.full(3, spec.accel_bias_sigma), np.full(3, spec.gyro_bias_sigma)], 1e-6)
+    n = 0
+    for f in imu_chain(mlog):
+        for g in (f - 1, f):
+            if not values.exists(V(g + 1)):
+                values.insert(V(g + 1), v_world[g])
+                values.insert(B(g + 1), zero)
+                if g == f - 1:  # a chain starts here
+                    graph.add(gtsam.PriorFactorVector(V(g + 1), v_world[g], gtsam.noiseModel.Isotropic.Sigma(3, float(sigma_v0_mps))))
+                    graph.add(gtsam.PriorFactorConstantBias(B(g + 1), zero, gtsam.noiseModel.Diagonal.Sigmas(sigma_bias)))
+        ts, gyro, accel = mlog.imu[f]
+        pim = preintegrate(params, ts, gyro, accel, float(t[f - 1]), float(t[f]), zero)
+        graph.add(gtsam.CombinedImuFactor(X(f), V(f), X(f + 1), V(f + 1), B(f), B(f + 1), pim))
+        n += 1
+    return n
 
 
 def build_graph(mlog: MeasurementLog, rig: SensorRig, T0: np.ndarray, P0: np.ndarray, sigma_px: float, sigma_seed_px: float, robust: bool) -> gtsam.NonlinearFactorGraph:
@@ -106,6 +142,8 @@ def smooth_batch(
     robust: bool = True,
     max_iterations: int = 10,
     relative_error_tol: float = 1e-3,
+    imu: ImuSpec | None = None,
+    sigma_v0_mps: float = 1.0,
 ) -> BatchResult:
     """Smooth the whole log from the initial estimates (``poses_init``: every frame's pose)."""
     t0 = time.perf_counter()
@@ -117,13 +155,14 @@ def smooth_batch(
     landmarks = set(mlog.seed_landmark) | {after for _, after, _ in mlog.links}
     for lm in landmarks:
         values.insert(L(lm), gtsam.Point3(*points_init[lm]))
+    n_imu = add_imu_factors(graph, values, mlog, imu, np.asarray(poses_init), sigma_v0_mps) if imu is not None else 0
     t1 = time.perf_counter()
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(relative_error_tol)
     error_initial = graph.error(values)
     try:
-        values, refit_iterations = _fit_landmarks_to_poses(graph, values, mlog.n_frames + 1, params)
+        values, refit_iterations = _fit_landmarks_to_poses(graph, values, mlog.n_frames + 1, params)  # (the velocities and biases fit too)
         error_refit = graph.error(values)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         out = optimizer.optimize()
@@ -142,6 +181,8 @@ def smooth_batch(
         optimize_s=t2 - t1,
         n_factors=graph.size(),
     )
+    if n_imu:
+        log.info("batch: %d IMU factors between frames", n_imu)
     log.info(
         "batch: %d factors, built in %.1f s; %d + %d iterations in %.1f s, error %.1f -> %.1f (landmarks fitted) -> %.1f",
         result.n_factors, result.build_s, result.refit_iterations, result.iterations, result.optimize_s,

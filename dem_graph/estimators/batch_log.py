@@ -24,14 +24,18 @@ class BatchLog:
         self.log = MeasurementLog()
         self.result: BatchResult | None = None
 
-    def add_frame(self, t_s: float, U: np.ndarray, Q: np.ndarray, landmarks: np.ndarray, uv_px: np.ndarray, split_old: np.ndarray) -> None:
+    def add_frame(
+        self, t_s: float, U: np.ndarray, Q: np.ndarray, landmarks: np.ndarray, uv_px: np.ndarray, split_old: np.ndarray,
+        imu: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    ) -> None:
         """A frame: the motion ``U`` from the previous frame (covariance ``Q``) and its inlier
         observations of ``landmarks`` (m,) at ``uv_px`` (m,2). ``split_old``: per observation, the
-        landmark before a patch refresh in this frame, or -1."""
+        landmark before a patch refresh in this frame, or -1. ``imu``: the IMU samples since the
+        previous frame (times, rates, forces), when the run uses an IMU."""
         # a refreshed point's match is an observation of the landmark before (matched with the
         # old patch) and defines the one after
         both = split_old >= 0
-        self.log.add_frame(t_s, U, Q, np.concatenate([landmarks, split_old[both]]), np.concatenate([uv_px, uv_px[both]]))
+        self.log.add_frame(t_s, U, Q, np.concatenate([landmarks, split_old[both]]), np.concatenate([uv_px, uv_px[both]]), imu)
 
     def add_seeds(self, frame: int, new: list[NewPoint], landmarks: np.ndarray) -> None:
         """The new points seeded at frame ``frame``, starting ``landmarks``."""
@@ -49,6 +53,7 @@ class BatchLog:
             self.log, self.rig, self._T0, self._P0, poses, points,
             c.frontend.sigma_px * np.sqrt((1 + c.track_correlation) / (1 - c.track_correlation)), c.frontend.camera_point_sigma_px,
             robust=c.robust, max_iterations=c.batch_max_iterations, relative_error_tol=c.batch_relative_error_tol,
+            imu=self.rig.imu if c.motion.use_imu else None, sigma_v0_mps=c.motion.initial_sigma_speed_mps,
         )  # fmt: skip
 
 

@@ -129,6 +129,7 @@ class GraphClient:
         setup = GraphSetup(
             T_world_body.copy(), P0, t_s, c.lag_s, c.relinearize_threshold, c.relinearize_skip, c.marginalize_every_s, c.optimizer,
             rig.camera_model, np.array(rig.T_body_cam, dtype=float), c.frontend.camera_point_sigma_px, c.split_link_sigma_m, c.robust,
+            rig.imu if c.motion.use_imu else None, c.motion.initial_sigma_speed_mps,
         )  # fmt: skip
         self._graph = ProcessGraph(setup, c.graph_max_lag) if c.graph_process else InProcessGraph(setup, c.graph_delay_keyframes)
         self._when_behind = c.graph_when_behind or "merge"
@@ -153,6 +154,7 @@ class GraphClient:
         # keyframes sent whose result is not back: the step each of their observations gave its point
         # (landmark -> metres, world frame), taken again on top of the graph's older estimate (apply)
         self._steps_in_flight: dict[int, dict[int, np.ndarray]] = {}
+        self.imu_bias = np.zeros(6)  # the graph's latest IMU biases [accel m/s^2, gyro rad/s] (zero until it has some)
 
     @property
     def graph(self) -> KeyframeGraph:
@@ -215,11 +217,13 @@ class GraphClient:
         observations: tuple[np.ndarray, np.ndarray, np.ndarray],
         new: list[NewPoint],
         point_steps: np.ndarray | None = None,
+        imu: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The keyframe's message to the graph: its pose, the motion since the last one, its
         observations, the new points with their seeds and the refreshed patches' links. Returns the
         new points' landmarks, world positions and covariances (None without new points).
-        ``point_steps`` (m,3): how far each observation moved its live point (see :meth:`apply`)."""
+        ``point_steps`` (m,3): how far each observation moved its live point (see :meth:`apply`);
+        ``imu``: the IMU samples since the last keyframe (:meth:`~dem_graph.estimators.imu_preintegration.ImuBuffer.span`)."""
         T = T_world_body
         k = len(self.keyframe_t_s) - 1
         if t_s > self.keyframe_t_s[-1]:  # else: the first frame, at the start pose's time
@@ -242,7 +246,7 @@ class GraphClient:
         every = self._pose_covariance_every_s
         want_marginal = every > 0 and not self._marginal_asked and t_s - self.anchor.t_s >= every
         self._marginal_asked |= want_marginal
-        self._graph.send(KeyframeMessage(k, t_s, T.copy(), self.U_kf, self.Q_kf, *observations, links, new_landmarks, want_marginal))
+        self._graph.send(KeyframeMessage(k, t_s, T.copy(), self.U_kf, self.Q_kf, *observations, links, new_landmarks, want_marginal, imu))
         self._sent_T[k] = T.copy()
         self._Q_since[k] = np.zeros((6, 6))
         if point_steps is not None:
@@ -273,6 +277,8 @@ class GraphClient:
         k = r.k
         self.poses.update(r.poses)
         self.points.update(r.points)
+        if r.imu_bias is not None:
+            self.imu_bias = r.imu_bias
         self._graph_lag.append(len(self.keyframe_t_s) - 1 - k)
         for phase, seconds in {"total": r.worker_s, **r.phases}.items():
             self.update_phases.setdefault(phase, []).append(seconds)

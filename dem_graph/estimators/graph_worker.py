@@ -44,9 +44,11 @@ from gtsam.symbol_shorthand import L, X
 
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
+from dem_graph.estimators.imu_preintegration import preintegrate, preintegration_params
 from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
 from dem_graph.frontend.frontend import PointKind
 from dem_graph.geometry.camera import PinholeCamera
+from dem_graph.geometry.rig import ImuSpec
 
 
 @dataclass(frozen=True)
@@ -66,6 +68,8 @@ class GraphSetup:
     camera_point_sigma_px: float  # the seed pixel of a camera point
     split_link_sigma_m: float
     robust: bool
+    imu: ImuSpec | None = None  # the rig's IMU, when its samples are sent (KeyframeMessage.imu)
+    imu_sigma_v0_mps: float = 1.0  # the prior on a keyframe's velocity where the IMU's factors start (the first, or after a restart or a gap)
 
 
 @dataclass(frozen=True)
@@ -94,6 +98,7 @@ class KeyframeMessage:
     links: list[tuple[int, int, np.ndarray]] = field(default_factory=list)  # (old, new landmark, old covariance) of refreshed patches
     new_points: list[NewLandmark] = field(default_factory=list)
     want_marginal: bool = False  # answer with keyframe k's marginal pose covariance
+    imu: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # the IMU samples since keyframe k - 1: times (n,), rates, forces (n,3)
 
 
 @dataclass(frozen=True)
@@ -113,6 +118,7 @@ class GraphResult:
     poses: dict[int, np.ndarray]  # every keyframe in the window: T_world_body
     points: dict[int, np.ndarray]  # every landmark in the window: X_world
     marginal: np.ndarray | None = None  # keyframe k's marginal pose covariance, when asked for
+    imu_bias: np.ndarray | None = None  # keyframe k's IMU biases [accel m/s^2 (3), gyro rad/s (3)], with an IMU
     failure: str | None = None  # the update failed: the graph waits for a RestartMessage
     waiting: bool = False  # keyframes that arrived while the graph waited for its restart
     worker_s: float = 0.0  # the graph's time on these messages, seconds
@@ -125,6 +131,7 @@ class GraphWorker:
     def __init__(self, setup: GraphSetup):
         self.setup = setup
         self._K = calibration(setup.camera)
+        self._imu_params = preintegration_params(setup.imu) if setup.imu is not None else None
         self.graph = KeyframeGraph(setup.T_world_body_0, setup.P0, setup.t0_s, setup.lag_s, setup.relinearize_threshold, setup.relinearize_skip, setup.marginalize_every_s, setup.optimizer)
         self.failed = False
         self._cut_failure: str | None = None  # the last cut failed and no result has said so yet
@@ -169,6 +176,7 @@ class GraphWorker:
             result.worker_s = time.perf_counter() - t0
             return result
         result.poses, result.points = g.window_estimates()
+        result.imu_bias = g.biases.get(g.last_keyframe)
         result.phases.update(g.take_phases())
         result.worker_s = time.perf_counter() - t0
         return result
@@ -197,6 +205,8 @@ class GraphWorker:
             if k != m.k:
                 raise DemGraphError(f"keyframe {m.k} sent to the graph, which expected keyframe {k}")
             g.add_factor(odometry_factor(X(k - 1), X(k), m.U, m.Q))
+            if m.imu is not None and self._imu_params is not None:
+                self._add_imu(k, m)
         for old, new, Sigma_old in m.links:
             X_old = g.points[old]
             g.add_point(new, X_old)
@@ -215,6 +225,23 @@ class GraphWorker:
             g.add_point(p.landmark, p.X_world)
             for f in seed_factors(X(k), L(p.landmark), p.kind, p.p_body, p.Sigma_body, s.camera, self._K, s.T_body_cam, s.camera_point_sigma_px):
                 g.add_factor(f)
+
+    def _add_imu(self, k: int, m: KeyframeMessage) -> None:
+        """The IMU's factor between keyframes ``k - 1`` and ``k``. Where the IMU's factors start (the
+        first span, or after a restart or a span without samples), keyframe ``k - 1`` gets its
+        velocity and bias with priors: the velocity of the motion to ``k``, within ``imu_sigma_v0_mps``;
+        the latest bias estimate (zero at first), within the rig's bias sigmas at the start."""
+        g, spec = self.graph, self.setup.imu
+        if not g.has_nav(k - 1):
+            dt = g.keyframe_t_s[k] - g.keyframe_t_s[k - 1]
+            v_world = g.poses[k - 1][:3, :3] @ np.asarray(m.U)[:3, 3] / dt
+            latest = g.biases[max(g.biases)] if g.biases else np.zeros(6)
+            sigma_bias = np.r_[np.full(3, spec.accel_bias_sigma), np.full(3, spec.gyro_bias_sigma)]
+            g.add_nav(k - 1, v_world, gtsam.imuBias.ConstantBias(latest[:3], latest[3:]), self.setup.imu_sigma_v0_mps, np.maximum(sigma_bias, 1e-6))
+        b = g.biases[k - 1]
+        t, gyro, accel = m.imu
+        pim = preintegrate(self._imu_params, t, gyro, accel, g.keyframe_t_s[k - 1], g.keyframe_t_s[k], gtsam.imuBias.ConstantBias(b[:3], b[3:]))
+        g.add_imu(k - 1, k, pim)
 
     def _restart(self, m: RestartMessage) -> None:
         g = self.graph

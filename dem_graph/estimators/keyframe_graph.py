@@ -2,7 +2,10 @@
 
 Variables are ``X(k)``, the body pose ``T_world_body`` of keyframe k, and ``L(j)``, the world
 position of landmark ``j`` (metres). Each variable carries a timestamp: a keyframe its time, a point
-the time of the last keyframe that observed it.
+the time of the last keyframe that observed it. With an IMU (:meth:`KeyframeGraph.add_imu`), a
+keyframe also has ``V(k)``, the body origin's world velocity (m/s), and ``B(k)``, the IMU's biases
+(gtsam's ``imuBias.ConstantBias``: accelerometer m/s^2, gyroscope rad/s), with its time; between two
+such keyframes a ``CombinedImuFactor`` holds the samples preintegrated.
 
 Updates are incremental (``gtsam.ISAM2``), with the landmarks ordered before the keyframe poses
 (iSAM2's constrained ordering): by default iSAM2 puts every variable a new factor touches last, so
@@ -31,7 +34,7 @@ import time
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import B, L, V, X
 
 from dem_graph.errors import DemGraphError, one_line
 
@@ -63,6 +66,8 @@ class KeyframeGraph:
         self.marginalize_every_s = float(marginalize_every_s)
         self.poses: dict[int, np.ndarray] = {}  # keyframe index -> T_world_body, latest estimate
         self.points: dict[int, np.ndarray] = {}  # landmark -> X_world, latest estimate
+        self.velocities: dict[int, np.ndarray] = {}  # keyframe -> world velocity (m/s), latest estimate (IMU only)
+        self.biases: dict[int, np.ndarray] = {}  # keyframe -> IMU biases [accel m/s^2 (3), gyro rad/s (3)], latest estimate
         self.keyframe_t_s: list[float] = []
         self.phase_s: dict[str, float] = {}  # seconds spent per phase since the last take_phases()
         self._new_isam()
@@ -78,6 +83,7 @@ class KeyframeGraph:
         # the variables in the window with their times, seconds: keyframe -> t, landmark -> t
         self._pose_t: dict[int, float] = {}
         self._point_t: dict[int, float] = {}
+        self._nav_t: dict[int, float] = {}  # keyframes with velocity and bias variables -> t
 
     # --- building the next update -----------------------------------------------------------
     @property
@@ -127,24 +133,56 @@ class KeyframeGraph:
 
     def timestamps(self) -> dict[int, float]:
         """Every variable in the window (gtsam key) with its time, seconds."""
-        return {**{X(k): t for k, t in self._pose_t.items()}, **{L(j): t for j, t in self._point_t.items()}}
+        nav = {key(k): t for k, t in self._nav_t.items() for key in (V, B)}
+        return {**{X(k): t for k, t in self._pose_t.items()}, **{L(j): t for j, t in self._point_t.items()}, **nav}
+
+    def has_nav(self, k: int) -> bool:
+        """Keyframe ``k`` has velocity and bias variables in the window (or will at the next update)."""
+        return k in self._nav_t or k in self._new_nav_t
+
+    def add_nav(self, k: int, v_world: np.ndarray, bias: gtsam.imuBias.ConstantBias, sigma_v_mps: float | None = None, sigma_bias: np.ndarray | None = None) -> None:
+        """Velocity and bias variables for keyframe ``k``, starting at ``v_world`` and ``bias``; with
+        sigmas, a prior at those values (``sigma_bias``: 6, accelerometer then gyroscope)."""
+        self._new_values.insert(V(k), np.asarray(v_world, dtype=float))
+        self._new_values.insert(B(k), bias)
+        self._new_nav_t[k] = self.keyframe_t_s[k]
+        self.velocities[k] = np.array(v_world, dtype=float)
+        self.biases[k] = np.asarray(bias.vector(), dtype=float).copy()
+        if sigma_v_mps is not None:
+            self.add_factor(gtsam.PriorFactorVector(V(k), np.asarray(v_world, dtype=float), gtsam.noiseModel.Isotropic.Sigma(3, float(sigma_v_mps))))
+        if sigma_bias is not None:
+            self.add_factor(gtsam.PriorFactorConstantBias(B(k), bias, gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigma_bias, dtype=float))))
+
+    def add_imu(self, k_prev: int, k: int, pim: gtsam.PreintegratedCombinedMeasurements) -> None:
+        """The IMU's preintegrated samples between keyframes ``k_prev`` and ``k`` (``k_prev`` must
+        have velocity and bias variables; ``k``'s start from the prediction)."""
+        bias = gtsam.imuBias.ConstantBias(self.biases[k_prev][:3], self.biases[k_prev][3:])
+        if not self.has_nav(k):
+            predicted = pim.predict(gtsam.NavState(gtsam.Pose3(self.poses[k_prev]), self.velocities[k_prev]), bias)
+            self.add_nav(k, predicted.velocity(), bias)
+        self.add_factor(gtsam.CombinedImuFactor(X(k_prev), V(k_prev), X(k), V(k), B(k_prev), B(k), pim))
 
     def _clear_pending(self) -> None:
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._new_pose_t: dict[int, float] = {}
         self._new_point_t: dict[int, float] = {}
+        self._new_nav_t: dict[int, float] = {}
 
     def _prior_on_pose(self, k: int, T_world_body: np.ndarray, P: np.ndarray) -> None:
         T = gtsam.Pose3(np.asarray(T_world_body, dtype=float))
         self.add_factor(gtsam.PriorFactorPose3(X(k), T, gtsam.noiseModel.Gaussian.Covariance(np.asarray(P, dtype=float))))
 
     # --- solving ----------------------------------------------------------------------------
-    def _ordering(self, poses) -> gtsam.ISAM2UpdateParams:
-        """iSAM2's update parameters with the keyframe poses ``poses`` eliminated after every landmark."""
+    def _ordering(self, poses, nav=()) -> gtsam.ISAM2UpdateParams:
+        """iSAM2's update parameters with the keyframe poses ``poses`` (and the velocities and biases
+        of the keyframes ``nav``) eliminated after every landmark."""
         groups = gtsam.KeyGroupMap()
         for k in poses:
             groups.insert2(X(k), 1)  # landmarks: group 0, first
+        for k in nav:
+            groups.insert2(V(k), 1)
+            groups.insert2(B(k), 1)
         params = gtsam.ISAM2UpdateParams()
         params.constrainedKeys = groups
         return params
@@ -165,7 +203,7 @@ class KeyframeGraph:
         """An iSAM2 update with what was added since the last one, and ``iterations - 1`` more
         relinearisation steps; refreshes the estimates."""
         t0 = time.perf_counter()
-        ordering = self._ordering([*self._pose_t, *self._new_pose_t])
+        ordering = self._ordering([*self._pose_t, *self._new_pose_t], [*self._nav_t, *self._new_nav_t])
         try:
             self.isam.update(self._new_factors, self._new_values, ordering)
             for _ in range(iterations - 1):
@@ -179,16 +217,20 @@ class KeyframeGraph:
         self._factor_keys.extend(frozenset(self._new_factors.at(i).keys()) for i in range(self._new_factors.size()))
         self._pose_t.update(self._new_pose_t)
         self._point_t.update(self._new_point_t)
+        self._nav_t.update(self._new_nav_t)
         self._clear_pending()
         self._read_estimate()
         self._timed("estimate", t1)
 
     def _read_estimate(self, values: gtsam.Values | None = None, poses=None, points=None) -> None:
-        """Refresh the kept estimates of the given keyframes and landmarks (default: the whole
-        window) from ``values`` (default: the smoother's estimate)."""
+        """Refresh the kept estimates of the given keyframes (their velocities and biases too) and
+        landmarks (default: the whole window) from ``values`` (default: the smoother's estimate)."""
         values = self.isam.calculateEstimate() if values is None else values
         for k in self._pose_t if poses is None else poses:
             self.poses[k] = values.atPose3(X(k)).matrix()
+            if k in self._nav_t:
+                self.velocities[k] = np.asarray(values.atVector(V(k)), dtype=float)
+                self.biases[k] = np.asarray(values.atConstantBias(B(k)).vector(), dtype=float)
         for j in self._point_t if points is None else points:
             self.points[j] = values.atPoint3(L(j))
 
@@ -214,7 +256,8 @@ class KeyframeGraph:
             return 0
         values = self.isam.calculateEstimate()
         self._read_estimate(values, old_poses, old_points)  # what the marginalised variables keep
-        old = {X(k) for k in old_poses} | {L(j) for j in old_points}
+        old_nav = [k for k in old_poses if k in self._nav_t]
+        old = {X(k) for k in old_poses} | {L(j) for j in old_points} | {key(k) for k in old_nav for key in (V, B)}
         touching, kept_indices = gtsam.NonlinearFactorGraph(), []
         for i, keys in enumerate(self._factor_keys):
             if old.isdisjoint(keys):
@@ -230,6 +273,8 @@ class KeyframeGraph:
             del self._pose_t[k]
         for j in old_points:
             del self._point_t[j]
+        for k in old_nav:
+            del self._nav_t[k]
         t1 = self._timed("cut", t0)
         kept, kept_keys = gtsam.NonlinearFactorGraph(), []
         for i in kept_indices:
@@ -240,11 +285,11 @@ class KeyframeGraph:
             kept_keys.append(frozenset(f.keys()))
         for key in old:
             values.erase(key)  # what is left: the window's estimate, the new iSAM2's start
-        pose_t, point_t = self._pose_t, self._point_t
+        pose_t, point_t, nav_t = self._pose_t, self._point_t, self._nav_t
         self._new_isam()
-        self._pose_t, self._point_t = pose_t, point_t
+        self._pose_t, self._point_t, self._nav_t = pose_t, point_t, nav_t
         try:
-            self.isam.update(kept, values, self._ordering(self._pose_t))
+            self.isam.update(kept, values, self._ordering(self._pose_t, self._nav_t))
         except RuntimeError as exc:
             raise GraphUpdateError(f"restarting iSAM2 after marginalising the window before t = {t_cut:.3f} s failed: {one_line(exc)}") from None
         self._factors, self._factor_keys = kept, kept_keys

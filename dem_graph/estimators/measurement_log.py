@@ -27,14 +27,19 @@ class MeasurementLog:
     seeds: list[NewPoint] = field(default_factory=list)
     seed_landmark: list[int] = field(default_factory=list)
     links: list[tuple[int, int, float]] = field(default_factory=list)  # (landmark before, after, sigma m)
+    imu: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = field(default_factory=list)  # per frame: the IMU samples since the frame before
 
     @property
     def n_frames(self) -> int:
         return len(self.t_s)
 
-    def add_frame(self, t_s: float, T_prev_curr: np.ndarray, covariance: np.ndarray, landmarks: np.ndarray, uv_px: np.ndarray) -> None:
-        """Frame ``n_frames``: the motion from the previous frame (from the start pose for the first)
-        and the pixels of the landmarks it observed."""
+    def add_frame(
+        self, t_s: float, T_prev_curr: np.ndarray, covariance: np.ndarray, landmarks: np.ndarray, uv_px: np.ndarray,
+        imu: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    ) -> None:
+        """Frame ``n_frames``: the motion from the previous frame (from the start pose for the first),
+        the pixels of the landmarks it observed, and the IMU samples since the previous frame (times,
+        rates, forces) when there are."""
         f = self.n_frames
         self.t_s.append(float(t_s))
         self.T_prev_curr.append(np.array(T_prev_curr, dtype=float))
@@ -43,6 +48,7 @@ class MeasurementLog:
         self._obs_frame.append(np.full(len(ids), f, dtype=np.int64))
         self._obs_point.append(ids)
         self._obs_uv.append(np.asarray(uv_px, dtype=float).reshape(-1, 2))
+        self.imu.append(imu)
 
     def add_seeds(self, frame: int, new: list[NewPoint], landmarks) -> None:
         self.seed_frame.extend([int(frame)] * len(new))

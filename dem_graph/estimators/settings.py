@@ -29,6 +29,7 @@ class MotionConfig(StrictModel):
     )
     wait_for_odometry: bool = Field(True, description="hold a frame until the odometry covering its time arrives (instead of extrapolating)")
     initial_sigma_pose: float = Field(1e-4, gt=0, description="initial pose uncertainty (radians and metres); the estimate is anchored at the initial pose")
+    use_imu: bool = Field(True, description="use the dataset's IMU when it has one (the rig's imu section); false (--no-imu): ignore its samples")
 
     def uses_odometry(self, has_odometry: bool) -> bool:
         return self.model == "odometry" or (self.model == "auto" and has_odometry)

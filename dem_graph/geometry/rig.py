@@ -223,12 +223,42 @@ class OdometrySpec(StrictModel):
         return self.increment_covariance(float(np.linalg.norm(np.asarray(T_prev_curr)[:3, 3])))
 
 
+# The simulated IMU's default part: the Bosch BMI270 (datasheet BST-BMI270-DS000, as quoted by
+# docs.luxonis.com/hardware/platform/sensors/imu/bmi270): accelerometer noise density 0.16 mg/sqrt(Hz),
+# gyroscope 0.007 deg/s/sqrt(Hz) (performance mode). The datasheet gives no bias random walk; the
+# defaults below are assumptions of the usual order for such parts, not datasheet figures.
+_G_MPS2 = 9.80665
+
+
+class ImuSpec(StrictModel):
+    """A 3-axis gyroscope and accelerometer: rate, mounting and the continuous-time noise model
+    (white noise densities and bias random walks, per axis, the convention of Kalibr and gtsam)."""
+
+    part: str = Field("Bosch BMI270", description="the part the noise figures come from (documentation only)")
+    rate_hz: PositiveFloat = Field(200.0, description="sample rate, Hz")
+    T_body_imu: Pose4x4 = Field(default_factory=lambda: np.eye(4), description="IMU pose in the body frame")
+    gyro_noise_density: NonNegativeFloat = Field(
+        math.radians(0.007), description="gyroscope white noise, rad/s/sqrt(Hz) (BMI270 datasheet: 0.007 deg/s/sqrt(Hz))"
+    )
+    accel_noise_density: NonNegativeFloat = Field(
+        0.16e-3 * _G_MPS2, description="accelerometer white noise, m/s^2/sqrt(Hz) (BMI270 datasheet: 0.16 mg/sqrt(Hz))"
+    )
+    gyro_bias_random_walk: NonNegativeFloat = Field(2.0e-5, description="gyroscope bias random walk, rad/s^2/sqrt(Hz) (assumed)")
+    accel_bias_random_walk: NonNegativeFloat = Field(3.0e-4, description="accelerometer bias random walk, m/s^3/sqrt(Hz) (assumed)")
+    gyro_bias_sigma: NonNegativeFloat = Field(
+        math.radians(0.05), description="gyroscope bias at the start, standard deviation, rad/s (after a standstill calibration; assumed)"
+    )
+    accel_bias_sigma: NonNegativeFloat = Field(0.02, description="accelerometer bias at the start, standard deviation, m/s^2 (assumed)")
+    gravity_mps2: PositiveFloat = Field(_G_MPS2, description="gravity's magnitude, along the world's -z, m/s^2")
+
+
 class SensorRig(StrictModel):
     """Everything a dataset says about its sensors."""
 
     camera: CameraSpec
     laser: LaserSpec
     odometry: OdometrySpec | None = Field(None, description="wheel odometry, when the vehicle has it")
+    imu: ImuSpec | None = Field(None, description="an inertial measurement unit, when the vehicle has one")
     T_cam_laser_covariance: list[list[float]] | None = Field(
         None, description="6x6 covariance of T_cam_laser from calibration, gtsam order [rot, trans], rad^2 and m^2"
     )
@@ -257,6 +287,12 @@ class SensorRig(StrictModel):
         return self.laser.T_body_laser
 
     @property
+    def T_body_imu(self) -> np.ndarray:
+        if self.imu is None:
+            raise ValueError("the rig has no IMU")
+        return self.imu.T_body_imu
+
+    @property
     def camera_model(self) -> PinholeCamera:
         return self.camera.model
 
@@ -281,6 +317,9 @@ def default_rig() -> SensorRig:
         camera=CameraSpec(T_body_cam=camera_mount([0.9, 0.0, 1.6], np.radians(20.0))),
         laser=LaserSpec(T_body_laser=laser_mount([1.0, 0.0, laser_height_m], np.arctan2(laser_height_m, 3.0))),
         odometry=OdometrySpec(),
+        # at the body origin, its board turned a quarter turn: gtsam's lever-arm correction leaves out
+        # the angular acceleration's term, which the terrain's vibration would make centimetres a second
+        imu=ImuSpec(T_body_imu=make_pose(rotation_from_rpy(0.0, 0.0, np.pi / 2), [0.0, 0.0, 0.0])),
     )
 
 

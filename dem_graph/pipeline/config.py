@@ -100,6 +100,7 @@ class RunOverrides:
     max_frames: int | None = None
     max_points: int | None = None  # frontend.max_points
     no_odometry: bool = False  # motion.model: constant_velocity
+    no_imu: bool = False  # motion.use_imu: false
     lag_s: float | None = None  # isam2.lag_s
     keyframe_every: int | None = None  # isam2.keyframe_every; for isam2-batch, its online pass's (batch_keyframe_every)
     graph_process: bool = False  # isam2.graph_process
@@ -121,6 +122,8 @@ class RunOverrides:
             config.frontend.max_points = self.max_points
         if self.no_odometry:
             config.motion.model = "constant_velocity"
+        if self.no_imu:
+            config.motion.use_imu = False
         if self.lag_s is not None:
             config.isam2.lag_s = self.lag_s
         if self.keyframe_every is not None:  # the batch's online pass has its own spacing

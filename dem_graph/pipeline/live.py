@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.datasets.events import CameraFrame, ImuSample, LaserScan, Odometry
 from dem_graph.dem.layers import Dem
 from dem_graph.dem.live_map import LiveMap
 from dem_graph.errors import DemGraphError
@@ -148,7 +148,7 @@ class LivePipeline:
         self._frame_t: deque[float] = deque()  # times of the frames in the revision window
         self._window = PoseWindow(np.array([t_start_s]), self._start[1][None], P0[None])
         self._points_seen = 0
-        self._last_t = {"frame": -math.inf, "scan": -math.inf, "odometry": -math.inf}
+        self._last_t = {"frame": -math.inf, "scan": -math.inf, "odometry": -math.inf, "imu": -math.inf}
         self._images: deque[tuple[float, np.ndarray]] = deque(maxlen=4)  # the frames the estimator may still hold
         self._estimator_s = 0.0
         self._map_s = 0.0
@@ -156,7 +156,7 @@ class LivePipeline:
         # whether its silence was warned about (once per silence)
         self._heard = {"frame": None, "scan": None, "odometry": None}
         self._silence_warned = {"frame": False, "scan": False, "odometry": False}
-        self.counters = {"events_out_of_order": 0, "scans_wrong_length": 0, "scans_nonfinite": 0, "camera_silences": 0, "laser_silences": 0, "odometry_silences": 0, "scans_without_return": 0}
+        self.counters = {"events_out_of_order": 0, "scans_wrong_length": 0, "scans_nonfinite": 0, "camera_silences": 0, "laser_silences": 0, "odometry_silences": 0, "scans_without_return": 0, "imu_nonfinite": 0}
 
     @classmethod
     def for_sequence(cls, sequence, config: RunConfig | None = None, strict_order: bool = False) -> LivePipeline:
@@ -171,6 +171,8 @@ class LivePipeline:
             return self.on_scan(event)
         if isinstance(event, Odometry):
             return self.on_odometry(event)
+        if isinstance(event, ImuSample):
+            return self.on_imu(event)
         raise DemGraphError(f"not an event the live pipeline takes: {type(event).__name__}")
 
     def _in_order(self, kind: str, t_s: float, what: str) -> bool:
@@ -196,6 +198,16 @@ class LivePipeline:
             return None
         self._heard_from("odometry", event.t_s)
         return self._timed(self.estimator.on_odometry, event)
+
+    def on_imu(self, event: ImuSample) -> LiveUpdate | None:
+        if not self._in_order("imu", event.t_s, f"IMU sample {event.index}"):
+            return None
+        if not (np.all(np.isfinite(event.gyro_rad_s)) and np.all(np.isfinite(event.accel_mps2))):
+            self.counters["imu_nonfinite"] += 1
+            if self.counters["imu_nonfinite"] == 1 or self.counters["imu_nonfinite"] % 100 == 0:
+                log.warning("IMU sample %d at %.6f s is not finite: skipped (%d such samples so far)", event.index, event.t_s, self.counters["imu_nonfinite"])
+            return None
+        return self._timed(self.estimator.on_imu, event)
 
     def on_scan(self, event: LaserScan) -> LiveUpdate | None:
         if not self._in_order("scan", event.t_s, f"laser scan {event.index}"):

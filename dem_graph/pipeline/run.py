@@ -19,7 +19,7 @@ from pathlib import Path
 from threadpoolctl import threadpool_limits
 
 from dem_graph.datasets.base import Sequence
-from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.datasets.events import CameraFrame, ImuSample, LaserScan, Odometry
 from dem_graph.datasets.open import DatasetOptions, open_dataset
 from dem_graph.errors import DemGraphError, one_line
 from dem_graph.estimators.base import Estimator
@@ -78,6 +78,8 @@ def feed(
             estimator.on_scan(event)
         elif isinstance(event, Odometry):
             estimator.on_odometry(event)
+        elif isinstance(event, ImuSample):
+            estimator.on_imu(event)
     if finish:
         estimator.finish()
 

@@ -74,6 +74,7 @@ class ScenarioConfig(StrictModel):
     length_m: float = Field(100.0, gt=0, description="distance driven, metres")
     rig: SensorRig = Field(default_factory=default_rig)
     with_odometry: bool = Field(True, description="simulate wheel odometry")
+    with_imu: bool = Field(True, description="simulate the rig's IMU (when it has one)")
     laser_time_offset_s: float = Field(0.013, description="laser clock offset from the camera's first frame, seconds")
     odometry_time_offset_s: float = Field(0.005, description="odometry clock offset, seconds")
     ground_truth_rate_hz: float = Field(200.0, gt=0, description="rate of the ground-truth trajectory, Hz")

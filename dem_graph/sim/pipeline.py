@@ -29,6 +29,7 @@ class SimulationResult:
     n_frames: int
     n_scans: int
     n_odometry: int
+    n_imu: int
     length_m: float
     duration_s: float
     elapsed_s: float
@@ -63,6 +64,7 @@ def simulate(config: ScenarioConfig, out_dir: str | Path, overwrite: bool = Fals
         n_frames=len(sequence.camera_times()),
         n_scans=len(sequence.laser_times()),
         n_odometry=len(sequence.odometry_times()),
+        n_imu=len(sequence.imu_times()),
         length_m=gt.path_length_m,
         duration_s=gt.duration_s,
         elapsed_s=elapsed,

@@ -64,7 +64,10 @@ SCENARIOS: dict[str, Callable[[], ScenarioConfig]] = {
 DEFAULT_SCENARIO = "demo"
 
 
-def scenario(name: str, seed: int | None = None, length_m: float | None = None, speed_mps: float | None = None, with_odometry: bool | None = None) -> ScenarioConfig:
+def scenario(
+    name: str, seed: int | None = None, length_m: float | None = None, speed_mps: float | None = None, with_odometry: bool | None = None,
+    with_imu: bool | None = None,
+) -> ScenarioConfig:
     """The named scenario's configuration, with optional overrides."""
     if name not in SCENARIOS:
         raise ConfigError(f"unknown scenario '{name}'; choose one of: {', '.join(SCENARIOS)}")
@@ -76,6 +79,8 @@ def scenario(name: str, seed: int | None = None, length_m: float | None = None, 
         update["length_m"] = length_m
     if with_odometry is not None:
         update["with_odometry"] = with_odometry
+    if with_imu is not None:
+        update["with_imu"] = with_imu
     if speed_mps is not None:
         update["path"] = {**config.path.model_dump(), "speed_mps": speed_mps}
     try:

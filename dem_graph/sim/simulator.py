@@ -11,11 +11,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dem_graph.datasets.base import GroundTruth, Sequence
-from dem_graph.datasets.events import CameraFrame, Event, LaserScan, Odometry
+from dem_graph.datasets.events import CameraFrame, Event, ImuSample, LaserScan, Odometry
 from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.se3 import invert
 from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.sim.config import ScenarioConfig
+from dem_graph.sim.imu import ImuTrack, imu_sample_times, simulate_imu
 from dem_graph.sim.laser import cast_scan
 from dem_graph.sim.raycast import TerrainScene
 from dem_graph.sim.render import CameraRenderer
@@ -25,8 +26,9 @@ from dem_graph.sim.vehicle import DrivenPath, SpeedProfile, VehicleMotion, gener
 
 log = logging.getLogger(__name__)
 
-# independent random streams, so that e.g. switching odometry off leaves the world unchanged
-_STREAMS = ("path", "terrain", "texture", "camera", "laser", "odometry", "speed")
+# independent random streams, so that e.g. switching odometry off leaves the world unchanged (a
+# stream added at the end leaves the others' numbers as they were)
+_STREAMS = ("path", "terrain", "texture", "camera", "laser", "odometry", "speed", "imu")
 
 
 def _rngs(seed: int) -> dict[str, np.random.Generator]:
@@ -67,6 +69,7 @@ class SimulatedSequence(Sequence):
         self.name = world.config.name
         self._scene: TerrainScene | None = None
         self._renderer: CameraRenderer | None = None
+        self._imu: ImuTrack | None = None
         gt_t = np.arange(0.0, world.t_end_s, 1.0 / world.config.ground_truth_rate_hz)
         gt_t = np.append(gt_t, world.t_end_s) if world.t_end_s - gt_t[-1] > 1e-9 else gt_t
         self._ground_truth = GroundTruth(Trajectory.from_poses(gt_t, world.motion.T_world_body(gt_t)), world.terrain.elevation)
@@ -100,6 +103,19 @@ class SimulatedSequence(Sequence):
         return self.world.config.with_odometry and self.rig.odometry is not None
 
     @property
+    def has_imu(self) -> bool:
+        return self.world.config.with_imu and self.rig.imu is not None
+
+    def imu_track(self) -> ImuTrack:
+        """Every IMU sample with the truth behind it (:mod:`dem_graph.sim.imu`), as :meth:`events` yields them."""
+        if not self.has_imu:
+            raise ValueError(f"scenario {self.name!r} has no IMU")
+        if self._imu is None:
+            spec = self.rig.imu
+            self._imu = simulate_imu(self.world.motion.T_world_body, spec.T_body_imu, spec, self.world.t_end_s, _rngs(self.world.config.seed)["imu"])
+        return self._imu
+
+    @property
     def scene(self) -> TerrainScene:
         if self._scene is None:
             self._scene = TerrainScene(self.world.terrain.elevation)
@@ -124,8 +140,11 @@ class SimulatedSequence(Sequence):
             return np.zeros(0)
         return np.arange(self.world.config.odometry_time_offset_s, self.world.t_end_s + 1e-9, 1.0 / self.rig.odometry.rate_hz)
 
+    def imu_times(self) -> np.ndarray:
+        return imu_sample_times(self.world.t_end_s, self.rig.imu.rate_hz) if self.has_imu else np.zeros(0)
+
     def event_count(self) -> int:
-        return len(self.camera_times()) + len(self.laser_times()) + len(self.odometry_times())
+        return len(self.camera_times()) + len(self.laser_times()) + len(self.odometry_times()) + len(self.imu_times())
 
     # --- streams -----------------------------------------------------------------------------
     def _camera_events(self, rng) -> Iterator[tuple[float, int, Event]]:
@@ -158,6 +177,13 @@ class SimulatedSequence(Sequence):
             T_meas[:3, 3] += T_rel[:3, :3] @ xi[3:]
             yield (float(times[k]), 0, Odometry(float(times[k]), float(stamps[k]), T_meas, spec.increment_covariance(distance), k))
 
+    def _imu_events(self) -> Iterator[tuple[float, int, Event]]:
+        if not self.has_imu:
+            return
+        track = self.imu_track()
+        for k, t in enumerate(track.t_s):  # at equal times after the camera: sample k holds the motion from t_k on
+            yield (float(t), 3, ImuSample(float(t), track.gyro_rad_s[k].copy(), track.accel_mps2[k].copy(), k))
+
     def laser_scans(self) -> tuple[np.ndarray, np.ndarray]:
         """The scans :meth:`events` yields (same noise), without rendering a single image."""
         scans = [scan for _, _, scan in self._laser_events(_rngs(self.world.config.seed)["laser"])]
@@ -170,6 +196,6 @@ class SimulatedSequence(Sequence):
 
     def events(self) -> Iterator[Event]:
         rngs = _rngs(self.world.config.seed)
-        streams = [self._odometry_events(rngs["odometry"]), self._laser_events(rngs["laser"]), self._camera_events(rngs["camera"])]
+        streams = [self._odometry_events(rngs["odometry"]), self._laser_events(rngs["laser"]), self._camera_events(rngs["camera"]), self._imu_events()]
         for _, _, event in heapq.merge(*streams, key=lambda item: (item[0], item[1])):
             yield event

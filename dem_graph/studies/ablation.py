@@ -13,7 +13,8 @@ Each ingredient is one source of error, taken out:
 ``laser`` and ``odometry`` are datasets of their own (:func:`truth_dataset`: the images, camera
 times and truth linked, the changed stream written); ``tracks`` instruments the front end of the run
 (:class:`TrueTracks`). A row gives the signed height and pitch error at the end, which say whether
-the drift goes one way, and the ATE and DEM error it makes (:func:`ablation_row`).
+the drift goes one way, and the ATE and DEM error it makes (:func:`ablation_row`). The runs ignore a
+simulated IMU (``motion.use_imu: false``), whose noise no ingredient takes out.
 """
 
 from __future__ import annotations
@@ -204,6 +205,7 @@ def ablation_row(
         truth_dataset(folder, data, on_disk)
     sequence = FolderSequence(data)
     config = run_config(sequence).model_copy(update={"estimator": estimator}, deep=True)
+    config.motion.use_imu = False  # the ingredients are the camera's, the laser's and the odometry's: an IMU's noise would stay in every row
     if settings:
         config = RunConfig.model_validate(merge_settings(config.model_dump(), settings))
     instrument = (lambda pipeline: TrueTracks(pipeline.estimator.frontend, sequence, sigma_px)) if "tracks" in ingredients else None

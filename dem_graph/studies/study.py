@@ -143,23 +143,32 @@ class StudyResult:
 
 
 GRAPH_PROCESS = "isam2-process"  # a study's name for isam2 with its graph in a second process
+NO_IMU = "-noimu"  # a study's suffix for an estimator run with the dataset's IMU ignored (--no-imu)
+
+
+def _base_name(name: str) -> str:
+    return name[: -len(NO_IMU)] if name.endswith(NO_IMU) else name
 
 
 def parse_study_estimators(text: str) -> tuple[str, ...]:
-    """The study's estimators from ``"gm,isam2"``: those ``compare`` knows, and ``isam2-process``."""
+    """The study's estimators from ``"gm,isam2"``: those ``compare`` knows, and ``isam2-process``;
+    each may end in ``-noimu`` (the same estimator ignoring the dataset's IMU)."""
     names = [n.strip() for n in text.split(",") if n.strip()]
-    others = [n for n in names if n != GRAPH_PROCESS]
+    others = [_base_name(n) for n in names if _base_name(n) != GRAPH_PROCESS]
     known = parse_estimators(others) if others else ()
-    return tuple(dict.fromkeys(n for n in names if n == GRAPH_PROCESS or n in known))
+    return tuple(dict.fromkeys(n for n in names if _base_name(n) == GRAPH_PROCESS or _base_name(n) in known))
 
 
 def _study_config(sequence, name: str, speed_mps: float, max_points: int | None) -> RunConfig:
     """The run's configuration: ``dem-graph run``'s defaults for the dataset when ``max_points`` is
     None, else the bench's for that cap (:func:`config_for_points`)."""
+    base = _base_name(name)
     if max_points is not None:
-        return config_for_points(name, max_points, sequence.rig, speed_mps)
-    config = run_config(sequence).model_copy(update={"estimator": "isam2" if name == GRAPH_PROCESS else name}, deep=True)
-    config.isam2.graph_process = name == GRAPH_PROCESS
+        config = config_for_points(base, max_points, sequence.rig, speed_mps)
+    else:
+        config = run_config(sequence).model_copy(update={"estimator": "isam2" if base == GRAPH_PROCESS else base}, deep=True)
+        config.isam2.graph_process = base == GRAPH_PROCESS
+    config.motion.use_imu = base == name
     return config
 
 
