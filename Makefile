@@ -1,7 +1,8 @@
 # Two commands do everything on a fresh Debian/Ubuntu machine with Python >= 3.10:
 #   make demo   set up, simulate the default scenario (dataset + picture), compare GM, PTPM, iSAM2 and iSAM2-batch on it (after the odometry alone)
 #               (one table, run folders and a report under out/demo/compare/)
-#   make test   set up, check the import layers (pyproject.toml), then run the test suite
+#   make test   set up, check the import layers (pyproject.toml), then run the test suite (one worker
+#               per core, pytest-xdist; a test file's tests stay on one worker, so its fixtures are made once)
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
@@ -15,7 +16,7 @@ demo: setup
 
 test: setup
 	$(BIN)/lint-imports --no-logo
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadfile
 
 bench: setup
 	$(BIN)/dem-graph bench-sim
