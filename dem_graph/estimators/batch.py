@@ -34,7 +34,7 @@ from gtsam.symbol_shorthand import B, L, V, X
 from dem_graph.errors import DemGraphError, one_line
 from dem_graph.estimators.base import ONLINE_TRAJECTORY, EstimatorResult
 from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
-from dem_graph.estimators.imu_preintegration import preintegrate, preintegration_params
+from dem_graph.estimators.imu_preintegration import bias_sigmas, preintegrate, preintegration_params
 from dem_graph.estimators.measurement_log import MeasurementLog
 from dem_graph.geometry.rig import ImuSpec, SensorRig
 
@@ -82,7 +82,7 @@ def add_imu_factors(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, mlo
     zero = gtsam.imuBias.ConstantBias()
     t = np.asarray(mlog.t_s)
     v_world = np.gradient(poses[:, :3, 3], t, axis=0) if len(t) > 1 else np.zeros((len(t), 3))
-    sigma_bias = np.maximum(np.r_[np.full(3, spec.accel_bias_sigma), np.full(3, spec.gyro_bias_sigma)], 1e-6)
+    sigma_bias = bias_sigmas(spec)
     n = 0
     for f in imu_chain(mlog):
         for g in (f - 1, f):

@@ -44,7 +44,7 @@ from gtsam.symbol_shorthand import L, X
 
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
-from dem_graph.estimators.imu_preintegration import preintegrate, preintegration_params
+from dem_graph.estimators.imu_preintegration import bias_sigmas, preintegrate, preintegration_params
 from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
 from dem_graph.frontend.frontend import PointKind
 from dem_graph.geometry.camera import PinholeCamera
@@ -236,8 +236,7 @@ class GraphWorker:
             dt = g.keyframe_t_s[k] - g.keyframe_t_s[k - 1]
             v_world = g.poses[k - 1][:3, :3] @ np.asarray(m.U)[:3, 3] / dt
             latest = g.biases[max(g.biases)] if g.biases else np.zeros(6)
-            sigma_bias = np.r_[np.full(3, spec.accel_bias_sigma), np.full(3, spec.gyro_bias_sigma)]
-            g.add_nav(k - 1, v_world, gtsam.imuBias.ConstantBias(latest[:3], latest[3:]), self.setup.imu_sigma_v0_mps, np.maximum(sigma_bias, 1e-6))
+            g.add_nav(k - 1, v_world, gtsam.imuBias.ConstantBias(latest[:3], latest[3:]), self.setup.imu_sigma_v0_mps, bias_sigmas(spec))
         b = g.biases[k - 1]
         t, gyro, accel = m.imu
         pim = preintegrate(self._imu_params, t, gyro, accel, g.keyframe_t_s[k - 1], g.keyframe_t_s[k], gtsam.imuBias.ConstantBias(b[:3], b[3:]))

@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from dem_graph.geometry.rig import ImuSpec
 
+MAX_GAP_PERIODS = 5  # samples further apart than this many sample periods do not measure the span between them
 INTEGRATION_SIGMA = 1e-4  # velocity random walk standing for the error of integrating the position with samples held over their interval, m/s per sqrt(s) (the vibration makes it 0.1 mm over a frame in the simulator)
 
 
@@ -32,6 +33,12 @@ def preintegration_params(spec: ImuSpec) -> gtsam.PreintegrationCombinedParams:
     params.setBiasAccCovariance(spec.accel_bias_random_walk**2 * I3)
     params.setBodyPSensor(gtsam.Pose3(np.asarray(spec.T_body_imu, dtype=float)))
     return params
+
+
+def bias_sigmas(spec: ImuSpec) -> np.ndarray:
+    """The biases' spread at the start in gtsam's bias order (accelerometer m/s^2 x3, gyroscope rad/s x3),
+    kept above zero so that a prior on them has a proper noise model."""
+    return np.maximum(np.r_[np.full(3, spec.accel_bias_sigma), np.full(3, spec.gyro_bias_sigma)], 1e-6)
 
 
 def bias(gyro_rad_s=(0.0, 0.0, 0.0), accel_mps2=(0.0, 0.0, 0.0)) -> gtsam.imuBias.ConstantBias:
@@ -62,6 +69,24 @@ def preintegrate(
     return pim
 
 
+def gyro_rotation(
+    spec: ImuSpec, samples: tuple[np.ndarray, np.ndarray, np.ndarray], t_a_s: float, t_b_s: float, gyro_bias_rad_s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The body's rotation from ``t_a_s`` to ``t_b_s`` by the gyroscope of ``samples`` (:meth:`ImuBuffer.span`),
+    ``R_a_b`` (3x3, body frame), and its 3x3 covariance (rad^2, right perturbation: white noise and
+    the bias's uncertainty at the start), with ``gyro_bias_rad_s`` taken off."""
+    t, gyro, _ = samples
+    edges = np.clip(np.append(t, t_b_s), t_a_s, t_b_s)
+    rotvecs = (gyro - np.asarray(gyro_bias_rad_s, dtype=float)) * np.diff(edges)[:, None]
+    R_imu = np.eye(3)
+    for R_k in Rotation.from_rotvec(rotvecs).as_matrix():
+        R_imu = R_imu @ R_k
+    R_body_imu = np.asarray(spec.T_body_imu, dtype=float)[:3, :3]
+    T = t_b_s - t_a_s
+    variance = spec.gyro_noise_density**2 * T + (spec.gyro_bias_sigma * T) ** 2  # per axis, isotropic
+    return R_body_imu @ R_imu @ R_body_imu.T, variance * np.eye(3)
+
+
 class ImuBuffer:
     """The samples received so far (times strictly increasing) and their preintegration over a span."""
 
@@ -87,10 +112,12 @@ class ImuBuffer:
         self._gyro.append(np.asarray(gyro_rad_s, dtype=float).reshape(3))
         self._accel.append(np.asarray(accel_mps2, dtype=float).reshape(3))
 
-    def span(self, t_a_s: float, t_b_s: float, max_gap_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    def span(self, t_a_s: float, t_b_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The samples that measure ``t_a_s`` to ``t_b_s``: times (n,), rates and forces (n,3), from the
         one that holds at ``t_a_s`` to the last before ``t_b_s``; None when the samples do not cover
-        the span (none at or before its start, none at or after its end yet, or a gap over ``max_gap_s``)."""
+        the span (none at or before its start, none at or after its end yet, or a gap over
+        :data:`MAX_GAP_PERIODS` sample periods)."""
+        max_gap_s = MAX_GAP_PERIODS / self.spec.rate_hz
         if not self._t or self._t[0] > t_a_s or self._t[-1] < t_b_s - max_gap_s:
             return None
         i = bisect.bisect_right(self._t, t_a_s) - 1
@@ -99,25 +126,6 @@ class ImuBuffer:
         if np.any(np.diff(np.append(t, t_b_s)) > max_gap_s):
             return None
         return t, np.array(self._gyro[i:j]), np.array(self._accel[i:j])
-
-    def rotation(self, t_a_s: float, t_b_s: float, gyro_bias_rad_s: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """The body's rotation from ``t_a_s`` to ``t_b_s`` by the gyroscope, ``R_a_b`` (3x3, body
-        frame), and its 3x3 covariance (rad^2, right perturbation: white noise and the bias's
-        uncertainty at the start), with ``gyro_bias_rad_s`` taken off; None when the samples do not
-        cover the span (:meth:`span`, gaps over five sample periods)."""
-        samples = self.span(t_a_s, t_b_s, max_gap_s=5.0 / self.spec.rate_hz)
-        if samples is None:
-            return None
-        t, gyro, _ = samples
-        edges = np.clip(np.append(t, t_b_s), t_a_s, t_b_s)
-        rotvecs = (gyro - np.asarray(gyro_bias_rad_s, dtype=float)) * np.diff(edges)[:, None]
-        R_imu = np.eye(3)
-        for r in rotvecs:
-            R_imu = R_imu @ Rotation.from_rotvec(r).as_matrix()
-        R_body_imu = np.asarray(self.spec.T_body_imu, dtype=float)[:3, :3]
-        T = t_b_s - t_a_s
-        variance = self.spec.gyro_noise_density**2 * T + (self.spec.gyro_bias_sigma * T) ** 2  # per axis, isotropic
-        return R_body_imu @ R_imu @ R_body_imu.T, variance * np.eye(3)
 
     def preintegrate(self, t_a_s: float, t_b_s: float, bias_estimate: gtsam.imuBias.ConstantBias) -> gtsam.PreintegratedCombinedMeasurements:
         """Every sample's increment from ``t_a_s`` to ``t_b_s`` (> ``t_a_s``), linearised at ``bias_estimate``."""
@@ -130,4 +138,4 @@ class ImuBuffer:
             del self._t[:k], self._gyro[:k], self._accel[:k]
 
 
-__all__ = ["ImuBuffer", "bias", "preintegrate", "preintegration_params"]
+__all__ = ["MAX_GAP_PERIODS", "ImuBuffer", "bias", "bias_sigmas", "gyro_rotation", "preintegrate", "preintegration_params"]

@@ -51,7 +51,7 @@ from dem_graph.estimators.base import SMOOTHED_TRAJECTORY, EstimatorResult, Fram
 from dem_graph.estimators.batch_log import BatchLog
 from dem_graph.estimators.graph_client import GraphClient
 from dem_graph.estimators.graph_worker import GraphResult
-from dem_graph.estimators.imu_preintegration import ImuBuffer
+from dem_graph.estimators.imu_preintegration import ImuBuffer, gyro_rotation
 from dem_graph.estimators.isam2_config import Isam2Config, Isam2Options
 from dem_graph.estimators.keyframe_graph import KeyframeGraph
 from dem_graph.estimators.live_points import LivePoints
@@ -66,7 +66,6 @@ from dem_graph.geometry.se3 import invert
 
 log = logging.getLogger(__name__)
 
-IMU_MAX_GAP_PERIODS = 5  # a keyframe span whose IMU samples have a gap of more sample periods than this gets no IMU factor
 ONLINE_PASS_ONLY = "isam2-batch (online pass only: stopped before the batch smoothing)"
 
 
@@ -154,11 +153,10 @@ class Isam2Slam(FrameDrivenEstimator):
         A = adjoint(invert(U_odo))  # carries every covariance over the frame's motion
         client.carry(U_odo, Q_odo, A)  # the graph's motion factor: the odometry (the gyro reaches the graph in its own factor)
         U, Q, imu_span = U_odo, Q_odo, None
-        if self._imu is not None:  # the frame's prediction: its rotation by the gyro
-            U, Q = self._gyro_rotation(event.t_s - dt, event.t_s, U, Q)
+        if self._imu is not None:  # the frame's prediction: its rotation by the gyro (the samples go to the batch's log too)
+            imu_span = self._imu.span(event.t_s - dt, event.t_s) if dt > 0 else None
+            U, Q = self._gyro_rotation(imu_span, event.t_s - dt, event.t_s, U, Q)
             A = adjoint(invert(U))
-            if self._batch is not None and dt > 0:
-                imu_span = self._imu.span(event.t_s - dt, event.t_s, max_gap_s=IMU_MAX_GAP_PERIODS / self._imu.spec.rate_hz)
         T_pred = filt.predict(U, Q, A)
         t1 = time.perf_counter()
         # a frame without texture (the reader marked it) is not searched: its pose is the prediction
@@ -238,16 +236,15 @@ class Isam2Slam(FrameDrivenEstimator):
         U, Q = self.frontend.gap_bridge.refine(event.t_s, event.image, event.textureless, U, Q)
         return dt, U, Q
 
-    def _gyro_rotation(self, t_a_s: float, t_b_s: float, U: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _gyro_rotation(self, samples, t_a_s: float, t_b_s: float, U: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The frame's motion with its rotation measured by the gyroscope (the graph's latest bias
         taken off; its covariance the gyro's, uncorrelated with the translation): a hundred times
         tighter than wheel odometry's over a frame, so the search regions shrink where the vehicle
-        turns or pitches. Unchanged when the samples do not cover the frame."""
-        measured = self._imu.rotation(t_a_s, t_b_s, self._client.imu_bias[3:]) if t_b_s > t_a_s else None
-        if measured is None:
+        turns or pitches. Unchanged when the ``samples`` (:meth:`ImuBuffer.span`) do not cover the frame (None)."""
+        if samples is None:
             self.frontend.counters["imu_frames_without_gyro"] += 1
             return U, Q
-        R, C = measured
+        R, C = gyro_rotation(self._imu.spec, samples, t_a_s, t_b_s, self._client.imu_bias[3:])
         U = U.copy()
         U[:3, :3] = R
         Q = Q.copy()
@@ -280,7 +277,7 @@ class Isam2Slam(FrameDrivenEstimator):
         if self._imu is not None:
             t_prev = self._client.keyframe_t_s[-1]
             if t_s > t_prev:
-                imu = self._imu.span(t_prev, t_s, max_gap_s=IMU_MAX_GAP_PERIODS / self._imu.spec.rate_hz)
+                imu = self._imu.span(t_prev, t_s)
                 if imu is None:
                     self.frontend.counters["imu_spans_missing"] += 1
             self._imu.drop_before(t_s)
