@@ -113,17 +113,18 @@ def test_a_span_needs_a_sample_at_its_start():
         buffer.add(1.0, np.zeros(3), np.zeros(3))
 
 
-def test_the_imu_stream_changes_no_estimate(smoke_log):
-    """`smoke` has the simulated IMU; no estimator uses it yet, so a run without its samples is the
-    same run: PTPM's poses bit for bit (30 frames). The camera, laser and odometry events are the same
-    whether the scenario simulates the IMU or not (the IMU draws from a random stream of its own)."""
+def test_no_imu_is_the_run_without_the_stream(smoke_log):
+    """`--no-imu` (``motion.use_imu: false``) on a log with the simulated IMU is the run of the same
+    log without its samples: PTPM's poses bit for bit (30 frames). The camera, laser and odometry
+    events are the same whether the scenario simulates the IMU or not (the IMU draws from a random
+    stream of its own)."""
     from dem_graph.pipeline import RunConfig
     from dem_graph.pipeline.run import run_estimator
 
     assert smoke_log.has_imu
     without = smoke_log.replace_events([e for e in smoke_log.events() if not isinstance(e, ImuSample)])
     assert not without.has_imu
-    config = RunConfig.model_validate({"estimator": "ptpm", "max_frames": 30})
+    config = RunConfig.model_validate({"estimator": "ptpm", "max_frames": 30, "motion": {"use_imu": False}})
     with_imu, without_imu = run_estimator(smoke_log, config, with_dem=False), run_estimator(without, config, with_dem=False)
     assert with_imu.error is None and without_imu.error is None
     np.testing.assert_array_equal(with_imu.estimator.trajectory().poses_se3, without_imu.estimator.trajectory().poses_se3)

@@ -7,7 +7,9 @@
   the first updates; track it; update.
 
 Prediction uses wheel odometry when the dataset has it (``motion_model: auto``) and a
-constant-velocity model otherwise.
+constant-velocity model otherwise. With an IMU (the rig's ``imu`` section, ``motion.use_imu``) the
+gyroscope's rotation over the frame replaces the prediction's (the gyroscope's bias joins the
+state), and the accelerometer's mean over the frame updates roll and pitch as gravity's direction.
 """
 
 from __future__ import annotations
@@ -16,13 +18,15 @@ import time
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, PositiveFloat
+from scipy.stats import chi2
 
 from dem_graph.config_types import StrictModel
-from dem_graph.datasets.events import CameraFrame
+from dem_graph.datasets.events import CameraFrame, ImuSample
 from dem_graph.estimators.base import EstimatorResult, FrameDrivenEstimator, FrameRecord
 from dem_graph.estimators.ekf_filter import EkfState
 from dem_graph.estimators.false_matches import FalseMatches
+from dem_graph.estimators.imu_preintegration import ImuBuffer, gyro_rotation, mean_specific_force, with_rotation
 from dem_graph.estimators.point_archive import PointArchive
 from dem_graph.estimators.settings import MotionConfig, SharedSettings
 from dem_graph.frontend.frontend import FrontEnd
@@ -34,12 +38,18 @@ class EkfOptions(StrictModel):
     """What only the EKF baselines have (the variant is the estimator's name)."""
 
     gm_search_half_size_px: int = Field(20, ge=1, description="GM: constant half size of every search region, pixels")
+    imu_gravity_sigma_mps2: PositiveFloat = Field(
+        0.2, description="with an IMU: the body's horizontal acceleration the tilt update does not model (speeding up, slowing down, vibration), m/s^2 per axis"
+    )
 
 
 class EkfConfig(SharedSettings, EkfOptions):
     """The EKF's options with the settings every estimator shares."""
 
     variant: Literal["gm", "ptpm"] = Field("ptpm", description="gm: one batch update per image; ptpm: point to point")
+
+
+GRAVITY_GATE_CHI2 = float(chi2.ppf(0.99, 2))  # a frame whose specific force is further from gravity is not a tilt measurement
 
 
 class EkfSlam(FrameDrivenEstimator):
@@ -55,7 +65,10 @@ class EkfSlam(FrameDrivenEstimator):
         v0 = np.zeros(6)
         v0[3] = m.initial_speed_mps
         P_v0 = np.diag([0.3**2] * 3 + [m.initial_sigma_speed_mps**2] * 3)
-        self.state = EkfState(T_world_body_initial, np.eye(6) * m.initial_sigma_pose**2, v0, P_v0)
+        # the IMU's samples until the frame they measure (motion.use_imu and a rig with an imu section)
+        self._imu = ImuBuffer(rig.imu) if m.use_imu and rig.imu is not None else None
+        bias_sigmas = None if self._imu is None else (rig.imu.gyro_bias_sigma, rig.imu.accel_bias_sigma)
+        self.state = EkfState(T_world_body_initial, np.eye(6) * m.initial_sigma_pose**2, v0, P_v0, bias_sigmas)
         self.history = PoseHistory()
         self.history.append(self.t_s, self.state.T_world_body)
         self._frames: list[FrameRecord] = []
@@ -99,11 +112,53 @@ class EkfSlam(FrameDrivenEstimator):
         the images on either side (:class:`~dem_graph.frontend.gap_bridge.GapBridge`); without
         odometry, its velocity does."""
         dt, increment = self._motion.advance(event.t_s)
+        t_a = event.t_s - dt
+        samples = self._imu_span(t_a, event.t_s) if dt > 0 else None
+        if samples is not None:
+            spec = self.rig.imu
+            R_gyro, _ = gyro_rotation(spec, samples, t_a, event.t_s, self.state.gyro_bias_rad_s)
+            var_rot = spec.gyro_noise_density**2 * dt  # white noise only: the bias is in the state
         if increment is not None:
             U, Q = self.frontend.gap_bridge.refine(event.t_s, event.image, event.textureless, *increment)
+            if samples is not None:
+                U, Q = with_rotation(U, Q, R_gyro, np.eye(3) * var_rot)
             self.state.predict_increment(U, Q, dt)
+        elif samples is not None:
+            self.state.predict_constant_velocity_gyro(dt, self._motion.sigma_acc[3], R_gyro, var_rot)
         elif dt > 0:
             self.state.predict_constant_velocity(dt, self._motion.sigma_acc)
+        if samples is not None:
+            self.state.propagate_imu_biases(spec.T_body_imu, dt, spec.gyro_bias_random_walk, spec.accel_bias_random_walk)
+            self._gravity_update(samples, t_a, event.t_s)
+
+    # --- the IMU ---------------------------------------------------------------------------------
+    def on_imu(self, event: ImuSample) -> None:
+        """An IMU sample: kept until the frame whose interval it measures."""
+        if self._imu is None or (self._imu.last_t_s is not None and event.t_s <= self._imu.last_t_s):
+            return  # (the pipeline skips samples out of order before they come here)
+        self._imu.add(event.t_s, event.gyro_rad_s, event.accel_mps2)
+
+    def _imu_span(self, t_a_s: float, t_b_s: float):
+        """The samples measuring the frame's interval (:meth:`ImuBuffer.span`), None without an IMU
+        or where they do not cover it (the prediction is then the odometry's or the model's, counted)."""
+        if self._imu is None:
+            return None
+        samples = self._imu.span(t_a_s, t_b_s)
+        self._imu.drop_before(t_b_s)
+        if samples is None:
+            self.frontend.counters["imu_frames_without_gyro"] += 1
+        return samples
+
+    def _gravity_update(self, samples, t_a_s: float, t_b_s: float) -> None:
+        """The accelerometer's mean over the frame as gravity's direction (roll and pitch), the
+        centripetal acceleration of the body's velocity at the gyroscope's rate taken off."""
+        spec = self.rig.imu
+        T = t_b_s - t_a_s
+        v = self.state.v_body
+        accel_body = np.cross(v[:3], v[3:])  # the body's acceleration at a steady speed on a turn
+        var = spec.accel_noise_density**2 / T + self.config.imu_gravity_sigma_mps2**2
+        ok = self.state.gravity_update(mean_specific_force(samples, t_a_s, t_b_s), accel_body, spec.T_body_imu, var, spec.gravity_mps2, GRAVITY_GATE_CHI2)
+        self.frontend.counters["imu_tilt_updates" if ok else "imu_tilt_gated"] += 1
 
     # --- tracking and update -----------------------------------------------------------------
     def _camera_pose(self) -> np.ndarray:

@@ -1,8 +1,16 @@
 """The EKF of the paper (III-B): one pose, its velocity and the live map points in one state.
 
 State: ``T_world_body``, the body twist ``v_body`` ([angular rad/s, linear m/s], used by the
-constant-velocity model) and ``n`` world points. Covariance ``P`` has the layout
-``[pose 0:6, velocity 6:12, point i at 12+3i]``.
+constant-velocity model), with an IMU its gyroscope's and accelerometer's biases (IMU frame), and
+``n`` world points. Covariance ``P`` has the layout ``[pose 0:6, velocity 6:12, point i at
+12+3i]``, or with an IMU ``[pose, velocity, gyroscope bias 12:15, accelerometer bias 15:18, point i
+at 18+3i]`` (``n_base``).
+
+With an IMU the gyroscope's rotation over a frame replaces the prediction's rotation; a bias error
+``db`` turns the body by ``-R_body_imu db dt``, which the prediction carries into every error
+coordinate (:meth:`EkfState.propagate_imu_biases`). The accelerometer's mean over the frame is a
+measurement of gravity's direction in the body frame, that is of roll and pitch, shared with its
+bias (:meth:`EkfState.gravity_update`).
 
 Error coordinates (why the filter stays consistent)
 ---------------------------------------------------
@@ -32,6 +40,7 @@ the exact sequential EKF.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from dem_graph.geometry.camera import PinholeCamera
 from dem_graph.geometry.lie import adjoint, local, retract, skew, so3_exp
@@ -41,26 +50,39 @@ POSE = slice(0, 6)
 ROT = slice(0, 3)
 POS = slice(3, 6)
 VEL = slice(6, 12)
+VEL_LIN = slice(9, 12)
 N_BASE = 12
+GYRO_BIAS = slice(12, 15)  # with an IMU only: the gyroscope's bias (IMU frame, rad/s), before the points
+ACCEL_BIAS = slice(15, 18)  # with an IMU only: the accelerometer's bias (IMU frame, m/s^2)
 RECENTER_M = 1.0  # the rotation error is centred within this distance of the vehicle, metres
 
 
-def point_cols(i: int) -> slice:
-    return slice(N_BASE + 3 * i, N_BASE + 3 * i + 3)
+def point_cols(i: int, n_base: int = N_BASE) -> slice:
+    """Point ``i``'s columns in a state whose points start at ``n_base``."""
+    return slice(n_base + 3 * i, n_base + 3 * i + 3)
 
 
 class EkfState:
-    def __init__(self, T_world_body: np.ndarray, P_pose: np.ndarray, v_body: np.ndarray, P_vel: np.ndarray):
-        """``P_pose``: covariance of the right perturbation of ``T_world_body`` ([rot, trans])."""
+    def __init__(self, T_world_body: np.ndarray, P_pose: np.ndarray, v_body: np.ndarray, P_vel: np.ndarray, imu_bias_sigmas: tuple[float, float] | None = None):
+        """``P_pose``: covariance of the right perturbation of ``T_world_body`` ([rot, trans]).
+        ``imu_bias_sigmas``: with an IMU, the gyroscope's and the accelerometer's biases join the
+        state (zero, these spreads per axis: rad/s and m/s^2)."""
         self.T_world_body = np.array(T_world_body, dtype=float)
         self.v_body = np.array(v_body, dtype=float)
         self.points_xyz = np.zeros((0, 3))
         self.point_ids = np.zeros(0, dtype=np.int64)
         self.origin = self.T_world_body[:3, 3].copy()  # centre of the rotation error, see recenter()
-        self.P = np.zeros((N_BASE, N_BASE))
+        self.has_imu_biases = imu_bias_sigmas is not None
+        self.n_base = N_BASE + 6 if self.has_imu_biases else N_BASE  # where the points start
+        self.gyro_bias_rad_s = np.zeros(3)  # IMU frame; both stay zero without an IMU
+        self.accel_bias_mps2 = np.zeros(3)
+        self.P = np.zeros((self.n_base, self.n_base))
         A = adjoint(self._T_about_origin())
         self.P[POSE, POSE] = A @ np.asarray(P_pose, dtype=float) @ A.T
         self.P[VEL, VEL] = P_vel
+        if self.has_imu_biases:
+            self.P[GYRO_BIAS, GYRO_BIAS] = np.eye(3) * float(imu_bias_sigmas[0]) ** 2
+            self.P[ACCEL_BIAS, ACCEL_BIAS] = np.eye(3) * float(imu_bias_sigmas[1]) ** 2
         self._L: np.ndarray | None = None  # pending low-rank downdate of P (sequential mode)
         self._L_rows = 0
 
@@ -71,11 +93,15 @@ class EkfState:
 
     @property
     def dim(self) -> int:
-        return N_BASE + 3 * self.n_points
+        return self.n_base + 3 * self.n_points
+
+    def cols(self, i: int) -> slice:
+        """Point ``i``'s columns of ``P``."""
+        return point_cols(i, self.n_base)
 
     def point_covariance(self, i: int) -> np.ndarray:
         """World-frame covariance of point ``i``: ``dX = xi_i - skew(X_hat) omega``."""
-        c = point_cols(i)
+        c = self.cols(i)
         A = -skew(self.points_xyz[i] - self.origin)
         P = self.P
         AP = A @ P[ROT, c]
@@ -103,7 +129,7 @@ class EkfState:
         # nu and every xi gain -skew(d) omega: P <- M P M^T with M = I + C E_rot^T
         C = np.zeros((self.dim, 3))
         C[POS] = -skew(d)
-        C[N_BASE:] = np.tile(C[POS], (self.n_points, 1))
+        C[self.n_base :] = np.tile(C[POS], (self.n_points, 1))
         self._add_symmetric_low_rank(C, self.P[ROT, :], self.P[ROT, ROT])
         self.origin = self.origin + d
 
@@ -125,7 +151,7 @@ class EkfState:
         G[ROT] = R_world
         G[POS] = skew(self.T_world_body[:3, 3] - self.origin) @ R_world
         if self.n_points:
-            G[N_BASE:] = (skew(self.points_xyz - self.origin) @ R_world).reshape(-1, 3)
+            G[self.n_base :] = (skew(self.points_xyz - self.origin) @ R_world).reshape(-1, 3)
         return G
 
     # --- prediction ----------------------------------------------------------------------------
@@ -169,6 +195,82 @@ class EkfState:
         Qc = np.block([[q * dt_s**2 / 3.0, q * dt_s / 2.0], [q * dt_s / 2.0, q]])
         self._add_symmetric_low_rank(L, None, Qc)
 
+    def predict_constant_velocity_gyro(self, dt_s: float, sigma_linear_acc: float, R_prev_curr: np.ndarray, var_rot_rad2: float) -> None:
+        """The constant-velocity model with the rotation measured: ``T <- T [R_prev_curr, J v dt]``
+        (the rotation ``R_prev_curr`` from the gyroscope, bias taken off, white-noise variance
+        ``var_rot_rad2`` per axis; the translation from the linear velocity, white acceleration
+        ``sigma_linear_acc`` m/s^2 per sqrt(Hz)). The angular velocity becomes the gyroscope's mean
+        rate. Follow with :meth:`propagate_gyro_bias`."""
+        self._keep_origin_near_vehicle()
+        R_before = self.T_world_body[:3, :3]
+        rotvec = Rotation.from_matrix(R_prev_curr).as_rotvec()
+        self.T_world_body = retract(self.T_world_body, np.r_[rotvec, self.v_body[3:] * dt_s])
+        R = self.T_world_body[:3, :3]
+        P = self.P
+        # only the linear velocity moves the pose here: F = I + dt C E_vlin^T
+        C = np.zeros((self.dim, 3))
+        C[POS] = R_before
+        self._add_symmetric_low_rank(dt_s * C, P[VEL_LIN, :], P[VEL_LIN, VEL_LIN])
+        q = np.eye(3) * sigma_linear_acc**2 * dt_s
+        L = np.zeros((self.dim, 6))
+        L[:, :3] = C
+        L[VEL_LIN, 3:] = np.eye(3)
+        self._add_symmetric_low_rank(L, None, np.block([[q * dt_s**2 / 3.0, q * dt_s / 2.0], [q * dt_s / 2.0, q]]))
+        self._add_symmetric_low_rank(self._rotation_coupling(R), None, np.eye(3) * var_rot_rad2)
+        # the angular velocity: the gyroscope's mean rate, with its white noise
+        ang = slice(6, 9)
+        P[ang, :] = 0.0
+        P[:, ang] = 0.0
+        P[ang, ang] = np.eye(3) * (var_rot_rad2 / dt_s**2 + 1e-6)
+        self.v_body[:3] = rotvec / dt_s
+
+    def propagate_imu_biases(self, R_body_imu: np.ndarray, span_s: float, gyro_random_walk: float, accel_random_walk: float) -> None:
+        """After a prediction whose rotation the gyroscope measured over ``span_s`` seconds: the
+        gyroscope's bias error ``db`` turned the body by ``-R_body_imu db span_s`` (right perturbation
+        at the new pose), ``F = I + C E_bias^T``; then both biases walk (``gyro_random_walk`` rad/s^2
+        and ``accel_random_walk`` m/s^3 per sqrt(Hz))."""
+        if not self.has_imu_biases or span_s <= 0:
+            return
+        P = self.P
+        C = -span_s * self._rotation_coupling(self.T_world_body[:3, :3] @ np.asarray(R_body_imu, dtype=float)[:3, :3])
+        self._add_symmetric_low_rank(C, P[GYRO_BIAS, :], P[GYRO_BIAS, GYRO_BIAS])
+        P[GYRO_BIAS, GYRO_BIAS] += np.eye(3) * gyro_random_walk**2 * span_s
+        P[ACCEL_BIAS, ACCEL_BIAS] += np.eye(3) * accel_random_walk**2 * span_s
+
+    def gravity_update(
+        self, f_imu_mps2: np.ndarray, accel_body_mps2: np.ndarray, R_body_imu: np.ndarray, var_mps4: float, gravity_mps2: float, gate_chi2: float
+    ) -> bool:
+        """The accelerometer's mean specific force over a frame ``f_imu_mps2`` (IMU frame) as a
+        measurement of the tilt, in its two horizontal components in the body frame:
+        ``R_body_imu (f - b_a) = a_body + R_world_body^T g e_z`` with the accelerometer's bias
+        ``b_a`` in the state, the body's own acceleration ``accel_body_mps2`` as far as it is known
+        and ``var_mps4`` the noise per axis, unmodelled acceleration included. The vertical
+        component, which the terrain's bumps dominate, says nothing about the tilt to first order
+        and is not used. Skipped (False) when the innovation fails the chi-square gate ``gate_chi2``
+        (2 degrees of freedom: the vehicle accelerating more than ``var_mps4`` allows). Only roll
+        and pitch are observed (the Jacobian has no yaw), and only as far as the bias allows."""
+        self._require_batch_mode()
+        if not self.has_imu_biases:
+            raise RuntimeError("a tilt update needs the IMU's biases in the state")
+        up = np.array([0.0, 0.0, 1.0])
+        R_bi = np.asarray(R_body_imu, dtype=float)[:3, :3]
+        R_bw = self.T_world_body[:3, :3].T
+        z = (R_bi @ (np.asarray(f_imu_mps2, dtype=float) - self.accel_bias_mps2))[:2]
+        y = z - (np.asarray(accel_body_mps2, dtype=float)[:2] + gravity_mps2 * (R_bw @ up)[:2])
+        H = np.zeros((2, 6))  # on [rotation error, accelerometer bias error]
+        H[:, :3] = gravity_mps2 * (R_bw @ skew(up))[:2]  # R_true^T e_z = R_hat^T (e_z + skew(e_z) omega)
+        H[:, 3:] = R_bi[:2]  # the measurement moves with the bias: y's model gains R_bi db_a
+        cols = np.r_[0:3, ACCEL_BIAS.start : ACCEL_BIAS.stop]
+        PHt = self.P[:, cols] @ H.T  # (N,2)
+        S = H @ PHt[cols] + var_mps4 * np.eye(2)
+        if not float(y @ np.linalg.solve(S, y)) <= gate_chi2:
+            return False
+        K = np.linalg.solve(S, PHt.T).T
+        self.apply_correction(K @ y)
+        self.P -= K @ PHt.T
+        self._symmetrize()
+        return True
+
     # --- observation -------------------------------------------------------------------------
     def observe(self, indices: np.ndarray, camera: PinholeCamera, T_body_cam: np.ndarray):
         """Predicted pixels of points ``indices`` and the Jacobians w.r.t. the pose error (k,2,6) and
@@ -189,8 +291,8 @@ class EkfState:
         n = self.n_points
         P = self.P
         P_pp = P[POSE, POSE]
-        P_pi = P[POSE, N_BASE:].reshape(6, n, 3).transpose(1, 0, 2)
-        idx = N_BASE + 3 * np.arange(n)[:, None] + np.arange(3)[None, :]
+        P_pi = P[POSE, self.n_base :].reshape(6, n, 3).transpose(1, 0, 2)
+        idx = self.n_base + 3 * np.arange(n)[:, None] + np.arange(3)[None, :]
         P_ii = P[idx[:, :, None], idx[:, None, :]]
         HpP = H_pose @ P_pp
         cross = H_pose @ P_pi @ np.swapaxes(H_point, 1, 2)
@@ -208,7 +310,7 @@ class EkfState:
         H = np.zeros((2 * k, N))
         for j, i in enumerate(indices):
             H[2 * j : 2 * j + 2, POSE] = H_pose[j]
-            H[2 * j : 2 * j + 2, point_cols(int(i))] = H_point[j]
+            H[2 * j : 2 * j + 2, self.cols(int(i))] = H_point[j]
         PHt = self.P @ H.T
         S = H @ PHt + R_px2 * np.eye(2 * k)
         K = np.linalg.solve(S, PHt.T).T
@@ -228,7 +330,7 @@ class EkfState:
 
     def correction(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Accumulated (pose, point i) corrections of the current sequential session."""
-        return self._dx[POSE], self._dx[point_cols(i)]
+        return self._dx[POSE], self._dx[self.cols(i)]
 
     def _HL(self, c: slice, H_pose: np.ndarray, H_point: np.ndarray) -> np.ndarray:
         """(2,k): the measurement Jacobian times the pending downdate factor."""
@@ -236,7 +338,7 @@ class EkfState:
         return H_pose @ Lt[:, POSE].T + H_point @ Lt[:, c].T
 
     def sequential_innovation_covariance(self, i: int, H_pose: np.ndarray, H_point: np.ndarray, R_px2: float) -> np.ndarray:
-        c = point_cols(i)
+        c = self.cols(i)
         P = self.P
         HpPpc = H_pose @ P[POSE, c]
         S = H_pose @ P[POSE, POSE] @ H_pose.T + HpPpc @ H_point.T + (HpPpc @ H_point.T).T + H_point @ P[c, c] @ H_point.T
@@ -249,7 +351,7 @@ class EkfState:
 
     def sequential_update(self, i: int, innovation: np.ndarray, H_pose: np.ndarray, H_point: np.ndarray, S: np.ndarray) -> None:
         """One point's update; ``S`` from :meth:`sequential_innovation_covariance` for the same point."""
-        c = point_cols(i)
+        c = self.cols(i)
         HP = H_pose @ self.P[POSE, :] + H_point @ self.P[c, :]  # (2,N) = (P H^T)^T
         k = self._L_rows
         if k:
@@ -279,8 +381,11 @@ class EkfState:
         o = self.origin
         T[:3, 3] = E @ (T[:3, 3] - o) + o + dx[POS]
         self.v_body = self.v_body + dx[VEL]
+        if self.has_imu_biases:
+            self.gyro_bias_rad_s = self.gyro_bias_rad_s + dx[GYRO_BIAS]
+            self.accel_bias_mps2 = self.accel_bias_mps2 + dx[ACCEL_BIAS]
         if self.n_points:
-            self.points_xyz = (self.points_xyz - o) @ E.T + o + dx[N_BASE:].reshape(-1, 3)
+            self.points_xyz = (self.points_xyz - o) @ E.T + o + dx[self.n_base :].reshape(-1, 3)
 
     def add_points(self, point_ids: np.ndarray, p_body: np.ndarray, Sigma_body: np.ndarray) -> None:
         """Append points measured in the current body frame (``p_body`` (k,3)) with covariance
@@ -311,7 +416,7 @@ class EkfState:
         if not np.any(remove_mask):
             return
         keep_pts = ~np.asarray(remove_mask, dtype=bool)
-        keep = np.concatenate([np.ones(N_BASE, dtype=bool), np.repeat(keep_pts, 3)])
+        keep = np.concatenate([np.ones(self.n_base, dtype=bool), np.repeat(keep_pts, 3)])
         self.P = self.P[np.ix_(keep, keep)]
         self.points_xyz = self.points_xyz[keep_pts]
         self.point_ids = self.point_ids[keep_pts]

@@ -87,6 +87,26 @@ def gyro_rotation(
     return R_body_imu @ R_imu @ R_body_imu.T, variance * np.eye(3)
 
 
+def with_rotation(U: np.ndarray, Q: np.ndarray, R_prev_curr: np.ndarray, C_rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's motion ``U`` (4x4) and covariance ``Q`` (6x6, [rot, trans]) with the rotation
+    replaced by a measured one (3x3) and its covariance (3x3), uncorrelated with the translation."""
+    U = U.copy()
+    U[:3, :3] = R_prev_curr
+    Q = Q.copy()
+    Q[:3, :] = 0.0
+    Q[:, :3] = 0.0
+    Q[:3, :3] = C_rot
+    return U, Q
+
+
+def mean_specific_force(samples: tuple[np.ndarray, np.ndarray, np.ndarray], t_a_s: float, t_b_s: float) -> np.ndarray:
+    """The accelerometer's mean over ``t_a_s`` to ``t_b_s`` (IMU frame, m/s^2), each sample held
+    until the next (:meth:`ImuBuffer.span`)."""
+    t, _, accel = samples
+    w = np.diff(np.clip(np.append(t, t_b_s), t_a_s, t_b_s))
+    return w @ accel / (t_b_s - t_a_s)
+
+
 class ImuBuffer:
     """The samples received so far (times strictly increasing) and their preintegration over a span."""
 
@@ -138,4 +158,4 @@ class ImuBuffer:
             del self._t[:k], self._gyro[:k], self._accel[:k]
 
 
-__all__ = ["MAX_GAP_PERIODS", "ImuBuffer", "bias", "bias_sigmas", "gyro_rotation", "preintegrate", "preintegration_params"]
+__all__ = ["MAX_GAP_PERIODS", "ImuBuffer", "bias", "bias_sigmas", "gyro_rotation", "mean_specific_force", "preintegrate", "preintegration_params", "with_rotation"]

@@ -51,7 +51,7 @@ from dem_graph.estimators.base import SMOOTHED_TRAJECTORY, EstimatorResult, Fram
 from dem_graph.estimators.batch_log import BatchLog
 from dem_graph.estimators.graph_client import GraphClient
 from dem_graph.estimators.graph_worker import GraphResult
-from dem_graph.estimators.imu_preintegration import ImuBuffer, gyro_rotation
+from dem_graph.estimators.imu_preintegration import ImuBuffer, gyro_rotation, with_rotation
 from dem_graph.estimators.isam2_config import Isam2Config, Isam2Options
 from dem_graph.estimators.keyframe_graph import KeyframeGraph
 from dem_graph.estimators.live_points import LivePoints
@@ -244,14 +244,7 @@ class Isam2Slam(FrameDrivenEstimator):
         if samples is None:
             self.frontend.counters["imu_frames_without_gyro"] += 1
             return U, Q
-        R, C = gyro_rotation(self._imu.spec, samples, t_a_s, t_b_s, self._client.imu_bias[3:])
-        U = U.copy()
-        U[:3, :3] = R
-        Q = Q.copy()
-        Q[:3, :] = 0.0
-        Q[:, :3] = 0.0
-        Q[:3, :3] = C
-        return U, Q
+        return with_rotation(U, Q, *gyro_rotation(self._imu.spec, samples, t_a_s, t_b_s, self._client.imu_bias[3:]))
 
     def _split_refreshed(self, idx: np.ndarray) -> np.ndarray:
         """Points whose patch was refreshed in this frame now follow a new landmark (tied to the

@@ -47,6 +47,7 @@ class StudyRow:
     final_height_error_m: float = math.nan  # signed, the last pose's z minus the truth's
     dem_rmse_m: float = math.nan  # the DEM's height RMSE over the laser cells
     matched_fraction: float = math.nan  # the tracking yield: searches for live points that matched
+    pose_nees_mean: float = math.nan  # the poses' NEES against the truth, mean over the frames (6 for a consistent estimator)
 
 
 def mean_or_nan(values: list[float]) -> float:
@@ -77,11 +78,11 @@ class StudyResult:
     frames: int | None  # camera frames per run at most (None: all)
 
     def table(self) -> str:
-        headers = ["estimator", "seed", "speed (m/s)", "cap n", "ATE (m)", "ATE aligned (m)", "drift (%)", "end height error (m)", "DEM RMSE (cm)", "matched",
+        headers = ["estimator", "seed", "speed (m/s)", "cap n", "ATE (m)", "ATE aligned (m)", "drift (%)", "end height error (m)", "DEM RMSE (cm)", "matched", "NEES mean",
                    "frame ms (median)", "frame ms (p95)", "live", "status"]
         rows = [
             [r.estimator, r.seed, f"{r.speed_mps:g}", r.max_points, f"{r.ate_m:.3f}", f"{r.ate_aligned_m:.3f}", f"{r.drift_percent:.2f}",
-             f"{r.final_height_error_m:+.3f}", f"{100 * r.dem_rmse_m:.1f}", f"{r.matched_fraction:.2f}",
+             f"{r.final_height_error_m:+.3f}", f"{100 * r.dem_rmse_m:.1f}", f"{r.matched_fraction:.2f}", f"{r.pose_nees_mean:.1f}",
              f"{r.frame_ms_median:.1f}", f"{r.frame_ms_p95:.1f}", f"{r.live_points:.0f}", r.status]
             for r in self.rows
         ]
@@ -203,6 +204,7 @@ def _run_row(sequence, name: str, seed: int, speed_mps: float, max_points: int |
         h["time_per_frame_median_ms"], h["time_per_frame_p95_ms"], h["points_per_frame"], status,
         final_height_error_m=h["final_height_error_m"], dem_rmse_m=h["dem_rmse_laser_cells_m"],
         matched_fraction=nan if tracking is None else tracking.matched_fraction,
+        pose_nees_mean=nan if run.metrics.pose_nees is None or run.metrics.pose_nees.mean is None else run.metrics.pose_nees.mean,
     )
 
 
