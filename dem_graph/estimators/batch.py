@@ -19,6 +19,13 @@ With an IMU, each frame whose samples were logged also has ``V(f + 1)`` (world v
 ``B(f + 1)`` (biases), tied to the frame before by a ``CombinedImuFactor``; where such a chain
 starts, a prior holds the velocity (the online poses' own, within ``sigma_v0_mps``) and the biases
 (zero, within the rig's spread at the start).
+
+The batch's posterior: with ``marginals`` (``batch_marginals``), each frame's pose covariance is its
+marginal in the final graph at the solution (:func:`pose_marginals`, ``gtsam.Marginals``), in gtsam's
+tangent order [rotation, translation] of the right perturbation in the body frame, the package's
+convention; :meth:`BatchResult.apply_to` puts it in the run's frames in place of the online pass's,
+so the run's pose NEES is the batch's own. Where gtsam cannot (an indeterminate system), a warning
+says so and the frames keep the online pass's covariances (counted as ``batch_marginals_failed``).
 """
 
 from __future__ import annotations
@@ -53,11 +60,19 @@ class BatchResult:
     build_s: float
     optimize_s: float
     n_factors: int
+    # (n_frames, 6, 6) every frame's marginal pose covariance ([rot, trans], right perturbation);
+    # None: not asked for, or gtsam could not (marginals_failed)
+    pose_covariances: np.ndarray | None = None
+    marginals_s: float = 0.0
+    marginals_failed: bool = False
 
     def apply_to(self, res: EstimatorResult, landmark_of: dict[int, int]) -> EstimatorResult:
-        """The online result with the smoothed poses and points (the online poses kept as :data:`ONLINE_TRAJECTORY`)."""
+        """The online result with the smoothed poses and points (the online poses kept as
+        :data:`ONLINE_TRAJECTORY`), and the batch's pose covariances when it has them (else the
+        online pass's stay)."""
         online = np.array([f.T_world_body for f in res.frames])
-        res.frames = [replace(f, T_world_body=self.poses[i]) for i, f in enumerate(res.frames)]
+        P = self.pose_covariances
+        res.frames = [replace(f, T_world_body=self.poses[i], pose_covariance=f.pose_covariance if P is None else P[i]) for i, f in enumerate(res.frames)]
         res.extra_poses[ONLINE_TRAJECTORY] = online
         res.points.xyz = [self.points.get(landmark_of.get(pid, -1), xyz) for pid, xyz in zip(res.points.point_id, res.points.xyz)]
         res.counters["batch_iterations"] = self.iterations
@@ -65,6 +80,10 @@ class BatchResult:
         res.counters["batch_factors"] = self.n_factors
         res.counters["batch_build_ms"] = round(1000 * self.build_s)
         res.counters["batch_optimize_ms"] = round(1000 * self.optimize_s)
+        if P is not None:
+            res.counters["batch_marginals_ms"] = round(1000 * self.marginals_s)
+        if self.marginals_failed:
+            res.counters["batch_marginals_failed"] = 1
         return res
 
 
@@ -130,6 +149,24 @@ def _fit_landmarks_to_poses(graph: gtsam.NonlinearFactorGraph, values: gtsam.Val
     return optimizer.optimize(), optimizer.iterations()
 
 
+def pose_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]) -> np.ndarray | None:
+    """The marginal covariance (k, 6, 6) of each pose of ``keys`` in ``graph`` linearised at
+    ``values`` (gtsam's tangent order [rotation, translation], right perturbation), symmetrised; None,
+    with a warning, when gtsam cannot factor the system (indeterminate) or a covariance is not
+    finite and positive definite."""
+    try:
+        marginals = gtsam.Marginals(graph, values)
+        P = np.array([marginals.marginalCovariance(k) for k in keys]).reshape(len(keys), 6, 6)
+    except RuntimeError as exc:
+        log.warning("batch: no marginal covariances (%s): the frames keep the online pass's", one_line(exc))
+        return None
+    P = 0.5 * (P + np.swapaxes(P, 1, 2))
+    if not (np.all(np.isfinite(P)) and np.all(np.linalg.eigvalsh(P)[:, 0] > 0)):
+        log.warning("batch: a marginal covariance is not finite and positive definite: the frames keep the online pass's")
+        return None
+    return P
+
+
 def smooth_batch(
     mlog: MeasurementLog,
     rig: SensorRig,
@@ -144,8 +181,10 @@ def smooth_batch(
     relative_error_tol: float = 1e-3,
     imu: ImuSpec | None = None,
     sigma_v0_mps: float = 1.0,
+    marginals: bool = True,
 ) -> BatchResult:
-    """Smooth the whole log from the initial estimates (``poses_init``: every frame's pose)."""
+    """Smooth the whole log from the initial estimates (``poses_init``: every frame's pose);
+    ``marginals``: and each frame's pose covariance from the final graph (:func:`pose_marginals`)."""
     t0 = time.perf_counter()
     graph = build_graph(mlog, rig, T0, P0, sigma_px, sigma_seed_px, robust)
     values = gtsam.Values()
@@ -169,6 +208,8 @@ def smooth_batch(
     except RuntimeError as exc:
         raise DemGraphError(f"the batch optimisation failed: {one_line(exc)}") from None
     t2 = time.perf_counter()
+    pose_covariances = pose_marginals(graph, out, [X(f + 1) for f in range(mlog.n_frames)]) if marginals else None
+    t3 = time.perf_counter()
     result = BatchResult(
         poses=np.array([out.atPose3(X(f + 1)).matrix() for f in range(mlog.n_frames)]),
         points={lm: out.atPoint3(L(lm)) for lm in landmarks},
@@ -180,6 +221,9 @@ def smooth_batch(
         build_s=t1 - t0,
         optimize_s=t2 - t1,
         n_factors=graph.size(),
+        pose_covariances=pose_covariances,
+        marginals_s=t3 - t2 if marginals else 0.0,
+        marginals_failed=marginals and pose_covariances is None,
     )
     if n_imu:
         log.info("batch: %d IMU factors between frames", n_imu)
@@ -188,7 +232,9 @@ def smooth_batch(
         result.n_factors, result.build_s, result.refit_iterations, result.iterations, result.optimize_s,
         result.error_initial, result.error_refit, result.error_final,
     )
+    if result.pose_covariances is not None:
+        log.info("batch: the poses' marginal covariances in %.1f s", result.marginals_s)
     return result
 
 
-__all__ = ["BatchResult", "build_graph", "smooth_batch"]
+__all__ = ["BatchResult", "build_graph", "pose_marginals", "smooth_batch"]

@@ -53,7 +53,7 @@ class BatchLog:
             self.log, self.rig, self._T0, self._P0, poses, points,
             c.frontend.sigma_px * np.sqrt((1 + c.track_correlation) / (1 - c.track_correlation)), c.frontend.camera_point_sigma_px,
             robust=c.robust, max_iterations=c.batch_max_iterations, relative_error_tol=c.batch_relative_error_tol,
-            imu=self.rig.imu if c.motion.use_imu else None, sigma_v0_mps=c.motion.initial_sigma_speed_mps,
+            imu=self.rig.imu if c.motion.use_imu else None, sigma_v0_mps=c.motion.initial_sigma_speed_mps, marginals=c.batch_marginals,
         )  # fmt: skip
 
 

@@ -81,6 +81,11 @@ class Isam2Options(StrictModel):
     )
     batch_max_iterations: int = Field(10, ge=1, description="isam2-batch: Levenberg-Marquardt iterations at most")
     batch_relative_error_tol: float = Field(1e-3, gt=0, description="isam2-batch: stop when the error falls by less than this fraction")
+    batch_marginals: bool = Field(
+        True,
+        description="isam2-batch: give each frame the marginal covariance of its pose in the batch's final graph (gtsam.Marginals at the solution), "
+        "so that the run's pose NEES is the batch's own; false: the frames keep the online pass's covariances (and the marginals' cost is saved)",
+    )
 
     @model_validator(mode="after")
     def _delay_needs_the_graph_in_process(self):
