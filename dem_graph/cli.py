@@ -347,7 +347,7 @@ def study(data_dir, scenario_name, seeds, speeds, budgets, estimators, realtime,
 
 
 @main.command()
-@click.option("--estimators", default="gm,ptpm,isam2,isam2-process", show_default=True, help="Comma-separated estimators (gm, ptpm, isam2, isam2-process: isam2 with its graph in a second process).")
+@click.option("--estimators", default="gm,ptpm,isam2,isam2-process", show_default=True, help="Comma-separated estimators (gm, ptpm, isam2, isam2-process: isam2 with its graph in a second process; a name ending in -noimu: that estimator ignoring the log's IMU).")
 @click.option("--points", default="50,100,130,150,200,300", show_default=True, help="Comma-separated caps on live points.")
 @click.option("--scenario", "scenario_name", default="demo", show_default=True, help="Simulated scenario to replay.")
 @click.option("--frames", type=int, default=150, show_default=True, help="Camera frames per run (1550 or more: also the cost at frame 1500 over frame 150).")
@@ -361,7 +361,7 @@ def study(data_dir, scenario_name, seeds, speeds, budgets, estimators, realtime,
 @_friendly_errors
 def bench(estimators, points, scenario_name, frames, plot_path, realtime) -> None:
     """Benchmark the estimators: time per frame against the number of points, tracking included."""
-    from dem_graph.studies.bench_estimators import BENCH_ESTIMATORS, bench_estimators
+    from dem_graph.studies.bench_estimators import BENCH_ESTIMATORS, bench_estimators, without_no_imu
 
     try:
         counts = tuple(int(x) for x in points.split(",") if x.strip())
@@ -370,9 +370,12 @@ def bench(estimators, points, scenario_name, frames, plot_path, realtime) -> Non
     if not counts or min(counts) < 1:
         raise click.BadParameter(f"give caps of 1 point or more: {points}", param_hint="--points")
     names = tuple(x.strip() for x in estimators.split(",") if x.strip())
-    unknown = [n for n in names if n not in BENCH_ESTIMATORS]
+    unknown = [n for n in names if without_no_imu(n) not in BENCH_ESTIMATORS]
     if unknown or not names:
-        raise click.BadParameter(f"unknown estimator {', '.join(unknown) or '(none given)'}: choose from {', '.join(BENCH_ESTIMATORS)}", param_hint="--estimators")
+        raise click.BadParameter(
+            f"unknown estimator {', '.join(unknown) or '(none given)'}: choose from {', '.join(BENCH_ESTIMATORS)}, each optionally ending in -noimu",
+            param_hint="--estimators",
+        )
     if plot_path is not None and plot_path.suffix.lower() != ".png":
         raise click.BadParameter(f"the plot is a PNG: {plot_path}", param_hint="--plot")
     result = bench_estimators(names, counts, scenario_name, frames, realtime=realtime)

@@ -73,3 +73,30 @@ def test_bad_bench_options_are_one_line_errors(args, message):
     result = CliRunner().invoke(main, ["bench", *args])
     assert result.exit_code == 2
     assert message in result.output and "Traceback" not in result.output
+
+
+def test_a_noimu_bench_row_is_the_run_without_the_imu():
+    """``ptpm-noimu`` in the bench is PTPM with the log's IMU ignored: its drift over 30 frames of
+    `smoke` equals a direct run with ``motion.use_imu: false`` on the same frames to the float, and
+    differs from the bench's ``ptpm`` row (which uses the IMU)."""
+    from dem_graph.datasets.events import CameraFrame
+    from dem_graph.datasets.memory import InMemorySequence
+    from dem_graph.pipeline.run import run_estimator
+    from dem_graph.sim.scenarios import scenario
+    from dem_graph.sim.simulator import SimulatedSequence
+    from dem_graph.studies.bench_estimators import bench_estimators, config_for_points
+
+    result = bench_estimators(("ptpm", "ptpm-noimu"), (60,), "smoke", frames=30, realtime=False)
+    rows = {r.estimator: r for r in result.rows}
+    sim = SimulatedSequence.from_config(scenario("smoke", seed=0))
+    events = []
+    for e in sim.events():
+        events.append(e)
+        if isinstance(e, CameraFrame) and e.index + 1 >= 30:
+            break
+    log = InMemorySequence(sim.rig, events, sim.T_world_body_initial, sim.t_start_s, sim.ground_truth, sim.name)
+    config = config_for_points("ptpm", 60, sim.rig)
+    config.motion.use_imu = False
+    direct = run_estimator(log, config).metrics.trajectory.drift_percent
+    assert rows["ptpm-noimu"].drift_percent == direct
+    assert rows["ptpm"].drift_percent != direct

@@ -90,6 +90,12 @@ class EstimatorBenchResult:
 
 
 BENCH_ESTIMATORS = ("gm", "ptpm", "isam2", "isam2-batch", "isam2-process")
+NO_IMU = "-noimu"  # a bench's or study's suffix: the estimator run with the log's IMU ignored (--no-imu)
+
+
+def without_no_imu(name: str) -> str:
+    """The estimator of a bench or study name, its :data:`NO_IMU` suffix taken off."""
+    return name[: -len(NO_IMU)] if name.endswith(NO_IMU) else name
 
 
 def config_for_points(estimator: str, max_points: int, rig, speed_mps: float | None = None) -> RunConfig:
@@ -132,7 +138,8 @@ def bench_estimators(
     rows = []
     for name in estimators:
         for n in progress(point_counts, total=len(point_counts), desc=f"bench {name}"):
-            config = config_for_points(name, n, sim.rig)
+            config = config_for_points(without_no_imu(name), n, sim.rig)
+            config.motion.use_imu = not name.endswith(NO_IMU)
             config.realtime = realtime
             run = run_estimator(log, config)
             fr = run.estimator.frames[5:]  # skip the start, while the map fills

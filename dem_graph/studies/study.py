@@ -25,7 +25,7 @@ from dem_graph.pipeline.config import ESTIMATORS, RunConfig, run_config
 from dem_graph.pipeline.run import run_estimator
 from dem_graph.sim.pipeline import simulate
 from dem_graph.sim.scenarios import scenario
-from dem_graph.studies.bench_estimators import config_for_points
+from dem_graph.studies.bench_estimators import config_for_points, without_no_imu
 from dem_graph.studies.compare import parse_estimators
 from dem_graph.studies.grid import LOCAL, GridJob, JobFailure, run_grid
 from dem_graph.studies.headline import headline
@@ -144,26 +144,19 @@ class StudyResult:
 
 
 GRAPH_PROCESS = "isam2-process"  # a study's name for isam2 with its graph in a second process
-NO_IMU = "-noimu"  # a study's suffix for an estimator run with the dataset's IMU ignored (--no-imu)
-
-
-def _base_name(name: str) -> str:
-    return name[: -len(NO_IMU)] if name.endswith(NO_IMU) else name
-
-
 def parse_study_estimators(text: str) -> tuple[str, ...]:
     """The study's estimators from ``"gm,isam2"``: those ``compare`` knows, and ``isam2-process``;
     each may end in ``-noimu`` (the same estimator ignoring the dataset's IMU)."""
     names = [n.strip() for n in text.split(",") if n.strip()]
-    others = [_base_name(n) for n in names if _base_name(n) != GRAPH_PROCESS]
+    others = [without_no_imu(n) for n in names if without_no_imu(n) != GRAPH_PROCESS]
     known = parse_estimators(others) if others else ()
-    return tuple(dict.fromkeys(n for n in names if _base_name(n) == GRAPH_PROCESS or _base_name(n) in known))
+    return tuple(dict.fromkeys(n for n in names if without_no_imu(n) == GRAPH_PROCESS or without_no_imu(n) in known))
 
 
 def _study_config(sequence, name: str, speed_mps: float, max_points: int | None) -> RunConfig:
     """The run's configuration: ``dem-graph run``'s defaults for the dataset when ``max_points`` is
     None, else the bench's for that cap (:func:`config_for_points`)."""
-    base = _base_name(name)
+    base = without_no_imu(name)
     if max_points is not None:
         config = config_for_points(base, max_points, sequence.rig, speed_mps)
     else:
