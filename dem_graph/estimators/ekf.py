@@ -134,9 +134,8 @@ class EkfSlam(FrameDrivenEstimator):
     # --- the IMU ---------------------------------------------------------------------------------
     def on_imu(self, event: ImuSample) -> None:
         """An IMU sample: kept until the frame whose interval it measures."""
-        if self._imu is None or (self._imu.last_t_s is not None and event.t_s <= self._imu.last_t_s):
-            return  # (the pipeline skips samples out of order before they come here)
-        self._imu.add(event.t_s, event.gyro_rad_s, event.accel_mps2)
+        if self._imu is not None:
+            self._imu.take(event)
 
     def _imu_span(self, t_a_s: float, t_b_s: float):
         """The samples measuring the frame's interval (:meth:`ImuBuffer.span`), None without an IMU

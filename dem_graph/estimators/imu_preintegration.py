@@ -132,6 +132,14 @@ class ImuBuffer:
         self._gyro.append(np.asarray(gyro_rad_s, dtype=float).reshape(3))
         self._accel.append(np.asarray(accel_mps2, dtype=float).reshape(3))
 
+    def take(self, event) -> None:
+        """An estimator's IMU sample (:class:`~dem_graph.datasets.events.ImuSample`), kept unless it is
+        not after the newest one (the pipeline skips samples out of order before they reach an
+        estimator, so this only guards)."""
+        if self._t and event.t_s <= self._t[-1]:
+            return
+        self.add(event.t_s, event.gyro_rad_s, event.accel_mps2)
+
     def span(self, t_a_s: float, t_b_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The samples that measure ``t_a_s`` to ``t_b_s``: times (n,), rates and forces (n,3), from the
         one that holds at ``t_a_s`` to the last before ``t_b_s``; None when the samples do not cover

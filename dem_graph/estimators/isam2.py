@@ -121,11 +121,8 @@ class Isam2Slam(FrameDrivenEstimator):
 
     def on_imu(self, event: ImuSample) -> None:
         """An IMU sample: kept until the keyframe whose span it measures goes to the graph."""
-        if self._imu is None:
-            return
-        if self._imu.last_t_s is not None and event.t_s <= self._imu.last_t_s:
-            return  # (the pipeline skips samples out of order before they come here)
-        self._imu.add(event.t_s, event.gyro_rad_s, event.accel_mps2)
+        if self._imu is not None:
+            self._imu.take(event)
 
     def finish(self) -> None:
         super().finish()
