@@ -142,6 +142,12 @@ class Sequence(abc.ABC):
     def has_odometry(self) -> bool:
         return False
 
+    def skipped_messages(self) -> dict[str, int]:
+        """How many of the log's messages the reader skipped, by stream and kind (``odometry_nonfinite``,
+        ``camera_stamp_not_after``, ``laser_wrong_shape``, ...; :class:`~dem_graph.datasets.checks.SkippedMessages`),
+        kept in ``metrics.json``. None skipped by default."""
+        return {}
+
     @property
     def has_imu(self) -> bool:
         """Whether :meth:`events` yields :class:`~dem_graph.datasets.events.ImuSample` events (in the rig's ``imu`` frame)."""

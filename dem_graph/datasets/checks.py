@@ -72,6 +72,17 @@ class InputChecks(StrictModel):
         ge=0,
         description="a camera frame whose grey levels' standard deviation is below this has no texture: marked, not tracked, grey levels (0-255)",
     )
+    max_skipped_fraction: float = Field(
+        0.2,
+        gt=0,
+        le=1,
+        description="a stream whose messages a reader skips (not finite, stamp not after its predecessor's, wrong shape) in a larger share than this is refused: a faulty driver, not a blemish, fraction of the stream's messages",
+    )
+    max_reordered_run: int = Field(
+        5,
+        ge=1,
+        description="more consecutive messages of a stream than this whose stamps are not after the last one kept: the stream's clock went back as a whole (a clock fault), refused, messages",
+    )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -89,6 +100,13 @@ def first_time_jump(t_s: np.ndarray, t_start_s: float | None, max_gap_s: float) 
     return int(jumps[0]) if len(jumps) else None
 
 
+def time_text(t_s: float) -> str:
+    """A time in seconds as people read it, with its unit: to the nanosecond, trailing zeros dropped
+    ("100.213 s", "0.0 s"); never a library's repr (``np.float64(0.21300000000000002)``)."""
+    text = f"{float(t_s):.9f}".rstrip("0")
+    return f"{text}0 s" if text.endswith(".") else f"{text} s"
+
+
 def check_time_jumps(where: str | Path, t_s: np.ndarray, t_start_s: float | None, checks: InputChecks, label: Callable[[int], str]) -> None:
     """Refuse a clock fault in one stream: a :class:`DatasetError` at ``where`` naming the item
     (``label(i)``, e.g. "line 42: t_s") whose time jumps more than ``checks.max_gap_s`` forward from
@@ -99,9 +117,112 @@ def check_time_jumps(where: str | Path, t_s: np.ndarray, t_start_s: float | None
     before_s, before = (float(t_s[i - 1]), "the one before") if i else (float(t_start_s), "the log's start")
     raise DatasetError(
         where,
-        f"{label(i)} = {float(t_s[i])!r} s is {float(t_s[i]) - before_s:.3f} s after {before} ({before_s!r} s), more than "
+        f"{label(i)} = {time_text(t_s[i])} is {float(t_s[i]) - before_s:.3f} s after {before} ({time_text(before_s)}), more than "
         f"input_checks.max_gap_s = {checks.max_gap_s:g} s: a clock fault (correct the time stamps, or cut the log there)",
     )
+
+
+def increasing_stamps(t_s: np.ndarray) -> np.ndarray:
+    """Mask of the messages to keep so that the stamps ``t_s`` (n,) increase strictly: the longest
+    strictly increasing subsequence, the earlier message kept where two would do (a duplicate stamp
+    drops the second; a stamp that jumps ahead of its neighbours for one message drops that one)."""
+    t = np.asarray(t_s, dtype=float)
+    n = len(t)
+    keep = np.zeros(n, dtype=bool)
+    if n == 0:
+        return keep
+    # on the stamps reversed and negated, the patience sort's tie-breaking keeps the earlier messages
+    s = -t[::-1]
+    tails_value: list[float] = []
+    tails_index: list[int] = []
+    parent = np.full(n, -1)
+    for k, v in enumerate(s):
+        pos = int(np.searchsorted(tails_value, v, side="left"))
+        parent[k] = tails_index[pos - 1] if pos else -1
+        if pos == len(tails_value):
+            tails_value.append(v)
+            tails_index.append(k)
+        else:
+            tails_value[pos], tails_index[pos] = v, k
+    k = tails_index[-1]
+    while k >= 0:
+        keep[n - 1 - k] = True
+        k = parent[k]
+    return keep
+
+
+NONFINITE, STAMP_NOT_AFTER, WRONG_SHAPE = "nonfinite", "stamp_not_after", "wrong_shape"
+_SKIP_KINDS = {
+    NONFINITE: "hold a value that is not finite",
+    STAMP_NOT_AFTER: "have a stamp not after the previous one's (a duplicate, or delivered late)",
+    WRONG_SHAPE: "do not have the stream's shape",
+}
+
+
+_KIND_LABELS = {NONFINITE: "not finite", STAMP_NOT_AFTER: "stamp not after the previous", WRONG_SHAPE: "of another shape"}
+
+
+class SkippedMessages:
+    """The messages of one stream a reader skips, by kind (:data:`NONFINITE`, :data:`STAMP_NOT_AFTER`,
+    :data:`WRONG_SHAPE`): one bad message costs one message. :meth:`finish` warns once per kind and
+    refuses the stream when too many are bad (:attr:`InputChecks.max_skipped_fraction`) or when the
+    stamps go back for a run of messages (:attr:`InputChecks.max_reordered_run`: the clock jumped)."""
+
+    def __init__(self, where: str | Path, stream: str, item: str = "message", first_number: int = 0):
+        """``item``: what the stream's entries are called in the messages ("message", "line"), numbered from ``first_number``."""
+        self.where, self.stream = where, stream
+        self.item, self.first_number = item, first_number
+        self.first: dict[str, tuple[int, str]] = {}  # kind -> (message index, why) of the first skipped
+        self.indices: dict[str, list[int]] = {}
+
+    def skip(self, index: int, kind: str, why: str) -> None:
+        """Skip message ``index`` for ``kind``; ``why``: what is wrong with it, for people (numbers with units)."""
+        if int(index) in self.indices.get(kind, ()):
+            return  # told already (a log replayed again)
+        self.first.setdefault(kind, (int(index), why))
+        self.indices.setdefault(kind, []).append(int(index))
+
+    @property
+    def skipped(self) -> set[int]:
+        return {i for v in self.indices.values() for i in v}
+
+    def counts(self) -> dict[str, int]:
+        """``{"<stream>_<kind>": count}`` of the kinds skipped (the counters ``metrics.json`` keeps)."""
+        return {f"{self.stream}_{kind}": len(v) for kind, v in self.indices.items()}
+
+    def finish(self, n_messages: int, checks: InputChecks) -> None:
+        """Refuse the stream (a :class:`DatasetError` in one line) or warn once per kind skipped."""
+        self._check_reordered_run(checks)
+        n_skipped = len(self.skipped)
+        if n_messages and n_skipped > checks.max_skipped_fraction * n_messages:
+            kinds = ", ".join(f"{len(v)} {_KIND_LABELS[kind]}" for kind, v in self.indices.items())
+            i, why = min(self.first.values())
+            first = f"{self.item} {i + self.first_number}"
+            if n_skipped == n_messages:
+                raise DatasetError(self.where, f"none of the {n_messages} {self.item}s can be used ({kinds}; first: {first}, {why})")
+            raise DatasetError(
+                self.where,
+                f"{n_skipped} of {n_messages} {self.item}s cannot be used ({kinds}; first: {first}, {why}): more than "
+                f"input_checks.max_skipped_fraction = {checks.max_skipped_fraction:.0%} of the stream, a faulty driver or recording rather than a blemish",
+            )
+        for kind, v in self.indices.items():
+            i, why = self.first[kind]
+            log.warning("%s: %d of %d %ss %s (first: %s %d, %s): skipped", self.where, len(v), n_messages, self.item, _SKIP_KINDS[kind], self.item, i + self.first_number, why)
+
+    def _check_reordered_run(self, checks: InputChecks) -> None:
+        """Refuse when more than ``checks.max_reordered_run`` consecutive messages were skipped for their stamps."""
+        order = sorted(self.indices.get(STAMP_NOT_AFTER, []))
+        start = 0
+        for k in range(1, len(order) + 1):
+            if k == len(order) or order[k] != order[k - 1] + 1:
+                if k - start > checks.max_reordered_run:
+                    raise DatasetError(
+                        self.where,
+                        f"{self.item}s {order[start] + self.first_number} to {order[k - 1] + self.first_number} ({k - start} in a row) have stamps not after the {self.item}s before them "
+                        f"(more than input_checks.max_reordered_run = {checks.max_reordered_run}): the stream's clock went back, a clock fault "
+                        "(correct the time stamps, or cut the log there)",
+                    )
+                start = k
 
 
 # ----------------------------------------------------------------------------------------------
@@ -338,7 +459,11 @@ def warn_if_no_laser(where: str | Path, ranges_m: np.ndarray, laser: LaserSpec) 
 
 
 __all__ = [
+    "NONFINITE",
+    "STAMP_NOT_AFTER",
+    "WRONG_SHAPE",
     "InputChecks",
+    "SkippedMessages",
     "TextureWatch",
     "check_covariances",
     "check_image_size",
@@ -346,9 +471,11 @@ __all__ = [
     "covariance_problems",
     "first_time_jump",
     "image_std_dn",
+    "increasing_stamps",
     "increment_rates",
     "plausible_increments",
     "repair_unknown_covariances",
+    "time_text",
     "unknown_covariances",
     "warn_if_no_laser",
 ]

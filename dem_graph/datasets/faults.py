@@ -131,6 +131,9 @@ class FaultySequence(Sequence):
     def run_settings(self) -> dict:
         return self.base.run_settings()
 
+    def skipped_messages(self) -> dict[str, int]:
+        return self.base.skipped_messages()
+
     def event_count(self) -> int | None:
         return self.base.event_count()
 

@@ -85,6 +85,7 @@ from dem_graph.datasets.base import (
     merged_order,
     read_ahead,
 )
+from dem_graph.datasets.checks import STAMP_NOT_AFTER, InputChecks, SkippedMessages, increasing_stamps, time_text
 from dem_graph.datasets.events import CameraFrame, Event, ImuSample, LaserScan, Odometry
 from dem_graph.datasets.velodyne import (
     RingLaser,
@@ -157,8 +158,8 @@ def read_times(path: Path) -> np.ndarray:
     except ValueError as exc:
         raise DatasetError(path, f"not one number per line ({exc})") from None
     i = first_not_increasing(t)
-    if i is not None:
-        raise DatasetError(path, f"times do not increase at line {i + 1}")
+    if i is not None:  # the odometry benchmark's own file, one time for an image and a scan: not a recorder's blemish
+        raise DatasetError(path, f"times do not increase at line {i + 1} ({time_text(t[i])} after {time_text(t[i - 1])} on line {i})")
     return t
 
 
@@ -720,16 +721,49 @@ def rectified_camera_from_cam0(P_rect: np.ndarray, T_rect0_x: np.ndarray) -> np.
     return make_pose(np.eye(3), t) @ T_rect0_x
 
 
+_RAW_STREAMS = {"image": "camera", "velodyne": "laser", "oxts": "odometry"}  # the counters' stream names
+
+
+def _skip_unordered_stamps(path: Path, stream: str, sec: np.ndarray, ns: np.ndarray, checks: InputChecks, counts: dict[str, int]) -> np.ndarray:
+    """Mask of the lines of a raw drive's ``timestamps.txt`` kept: a stamp not after the one before
+    it (a duplicate, a line out of order) costs its one file, with one warning and a count in ``counts``;
+    the stream is refused when too many are (:class:`~dem_graph.datasets.checks.SkippedMessages`)."""
+    t_s = (sec - sec[0]).astype(float) + (ns - ns[0]) * 1e-9 if len(sec) else np.zeros(0)
+    keep = increasing_stamps(t_s)
+    skipped = SkippedMessages(path, stream, item="line", first_number=1)
+    kept_before = 0
+    for i in range(len(t_s)):
+        if keep[i]:
+            kept_before = i
+            continue
+        before = f"line {kept_before + 1} kept before it: {_stamp_text(sec[kept_before], ns[kept_before])}" if keep[kept_before] else "no line kept before it"
+        skipped.skip(i, STAMP_NOT_AFTER, f"{_stamp_text(sec[i], ns[i])}, {before}")
+    skipped.finish(len(t_s), checks)
+    counts.update(skipped.counts())
+    return keep
+
+
+def _stamp_text(sec: int, ns: int) -> str:
+    """A raw drive's stamp as the file writes it, UTC to the nanosecond."""
+    return datetime.fromtimestamp(int(sec), tz=timezone.utc).strftime("%Y-%m-%d %H:%M:%S") + f".{int(ns):09d}"
+
+
 class KittiRawSequence(_KittiSequence):
     """A synced drive of the KITTI raw data (``DATE/DATE_drive_XXXX_sync``), calibration files in
     the drive folder or its parent. Ground truth and odometry from OXTS. ``camera``: which of
-    :data:`RAW_CAMERAS` (0-3; default the first the drive holds). Other options as
-    :class:`KittiOdometrySequence`'s."""
+    :data:`RAW_CAMERAS` (0-3; default the first the drive holds). A line of a ``timestamps.txt``
+    whose stamp is not after the line before it costs its one file (a warning, a count in
+    :meth:`skipped_messages`); ``checks`` says when a stream has too many (None: the defaults).
+    Other options as :class:`KittiOdometrySequence`'s."""
 
     layout = "kitti-raw"
 
     def open_options(self) -> dict:
         return {**super().open_options(), "camera": self.camera, "truth": self.truth}
+
+    def skipped_messages(self) -> dict[str, int]:
+        """The lines of the drive's ``timestamps.txt`` files skipped (stamps not after their predecessors'), by stream."""
+        return dict(self._skipped)
 
     def __init__(
         self,
@@ -741,6 +775,7 @@ class KittiRawSequence(_KittiSequence):
         odometry_spec: OdometrySpec | None = None,
         camera: int | None = None,
         truth: str | None = None,
+        checks: InputChecks | None = None,
     ):
         drive = Path(drive)
         if not drive.is_dir():
@@ -792,10 +827,11 @@ class KittiRawSequence(_KittiSequence):
             return (sec - sec0).astype(float) + (ns - ns0) * 1e-9
 
         t = {k: rel(v[1], v[2]) for k, v in streams.items()}
-        for k, (_, _, _, stamps_path) in streams.items():
-            i = first_not_increasing(t[k])
-            if i is not None:
-                raise DatasetError(stamps_path, f"time stamps do not increase at line {i + 1}")
+        self._skipped: dict[str, int] = {}
+        for k, (files, sec, ns, stamps_path) in list(streams.items()):
+            keep = _skip_unordered_stamps(stamps_path, _RAW_STREAMS[k], sec, ns, checks or InputChecks(), self._skipped)
+            streams[k] = ([f for f, kept in zip(files, keep) if kept], sec[keep], ns[keep], stamps_path)
+            t[k] = t[k][keep]
         oxts = _read_oxts(streams["oxts"][0])
         T_body_lidar = make_pose(np.eye(3), [0.0, 0.0, lidar_height_m])
         T_body_imu = T_body_lidar @ T_velo_imu

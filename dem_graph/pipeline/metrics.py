@@ -70,6 +70,7 @@ class RunMetrics(MetricsModel):
     tracking: TrackingYield | None = None  # how the searches for live points ended
     map_points: int | None = None  # points ever estimated
     events: dict[str, int | float] | None = None  # the estimator's counters (tracking outcomes, points added and dropped, ...)
+    skipped_messages: dict[str, int] | None = None  # the log's messages the reader skipped, by stream and kind (odometry_nonfinite, camera_stamp_not_after, ...)
     trajectory: TrajectoryAccuracy | None = None  # the per-frame estimate against the truth
     # the estimators' extra trajectories (estimators.base.EXTRA_TRAJECTORIES), by their names
     trajectory_smoothed: TrajectoryAccuracy | None = None  # isam2: every frame as smoothed at the end of the run
@@ -85,6 +86,7 @@ def compute_metrics(sequence: Sequence, res: EstimatorResult, error: str | None 
     """A run's metrics, its DEM and its dataset aside: frames, time and points per frame, events, and
     against the truth the trajectory's accuracy (each extra trajectory's too) and the poses' NEES."""
     metrics = RunMetrics(estimator=res.name, frames=len(res.frames), elapsed_s=elapsed_s, error=error or None)
+    metrics.skipped_messages = sequence.skipped_messages() or None
     if not res.frames:
         return metrics
     phases = sorted({k for f in res.frames for k in f.timing_s})
