@@ -1,8 +1,10 @@
 # Two commands do everything on a fresh Debian/Ubuntu machine with Python >= 3.10:
 #   make demo   set up, simulate the default scenario (dataset + picture), compare GM, PTPM, iSAM2 and iSAM2-batch on it (after the odometry alone)
 #               (one table, run folders and a report under out/demo/compare/)
-#   make test   set up, check the import layers (pyproject.toml), then run the test suite (one worker
-#               per core, pytest-xdist; a test file's tests stay on one worker, so its fixtures are made once)
+#   make test   set up, check the import layers (pyproject.toml), build the docs site (mkdocs build --strict:
+#               a broken link or a stale API reference fails), then run the test suite (one worker
+#               per core, pytest-xdist; a test file's tests stay on one worker, so its fixtures are made once;
+#               tests/test_docs_snippets.py runs the README's and the docs' Python snippets)
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
@@ -16,6 +18,7 @@ demo: setup
 
 test: setup
 	$(BIN)/lint-imports --no-logo
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir $(OUT)/site
 	$(BIN)/python -m pytest -q -n auto --dist loadfile
 
 bench: setup
@@ -36,8 +39,8 @@ $(VENV)/.installed: pyproject.toml | system-deps
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 10) else "dem_graph needs Python >= 3.10")'
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev]'
+	$(BIN)/python -m pip install -q -e '.[dev,docs]'
 	@touch $@
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache
+	rm -rf $(VENV) $(OUT) .pytest_cache site
