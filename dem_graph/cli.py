@@ -108,20 +108,24 @@ _DATASET_OPTIONS = (
         default=None,
         help="KITTI raw: the true trajectory from the OXTS GPS positions (the development kit's) or from its velocities integrated (steadier over a short drive) [default: positions].",
     ),
-    click.option("--rig", type=click.Path(dir_okay=False, path_type=Path), default=None, help="ROS bag: the rig YAML."),
+    click.option("--rig", type=click.Path(dir_okay=False, path_type=Path), default=None, help="ROS bag: a rig YAML, whole or in part, over the rig the bag holds field by field [default: the bag's own: CameraInfo, LaserScan, tf]."),
     click.option("--image-topic", default=None, help="ROS bag: sensor_msgs Image or CompressedImage topic."),
     click.option("--scan-topic", default=None, help="ROS bag: sensor_msgs LaserScan topic."),
     click.option("--odometry-topic", default=None, help="ROS bag: nav_msgs Odometry topic (optional)."),
-    click.option("--imu-topic", default=None, help="ROS bag: sensor_msgs Imu topic (optional; the rig YAML needs an imu section)."),
+    click.option("--imu-topic", default=None, help="ROS bag: sensor_msgs Imu topic (optional; T_body_imu from tf, its noise from the defaults unless --rig gives them)."),
+    click.option("--camera-info-topic", default=None, help="ROS bag: sensor_msgs CameraInfo topic [default: the image topic's sibling camera_info]."),
     click.option(
         "--body-frame",
         default=None,
-        help="ROS bag: body frame in tf_static (with --camera-frame, --laser-frame: extrinsics from tf; T_body_imu from tf when it links the IMU messages' frame_id).",
+        help="ROS bag: the body's tf frame, origin on the ground, z up [default: base_footprint, else base_link].",
     ),
-    click.option("--camera-frame", default=None, help="ROS bag: camera frame in tf_static."),
-    click.option("--laser-frame", default=None, help="ROS bag: laser frame in tf_static."),
+    click.option("--camera-frame", default=None, help="ROS bag: the camera's tf frame [default: the images' frame_id]; given, tf wins over --rig."),
+    click.option("--laser-frame", default=None, help="ROS bag: the laser's tf frame [default: the scans' frame_id]; given, tf wins over --rig."),
 )
-_DATASET_KEYS = ("sequence", "ring", "camera", "truth", "rig", "image_topic", "scan_topic", "odometry_topic", "imu_topic", "body_frame", "camera_frame", "laser_frame")
+_DATASET_KEYS = (
+    "sequence", "ring", "camera", "truth", "rig", "image_topic", "scan_topic", "odometry_topic", "imu_topic", "camera_info_topic", "body_frame", "camera_frame",
+    "laser_frame",
+)
 
 
 def _dataset_options(fn):
@@ -184,6 +188,29 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_
     if result.error:
         click.echo(f"dem-graph: error: {result.error} (results up to there were written)", err=True)
         sys.exit(130 if result.interrupted else 2)
+
+
+@main.command("bag-info")
+@click.argument("bag", type=click.Path(path_type=Path))
+@click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="A rig YAML over the bag's rig, as `run --rig` takes it.")
+@_friendly_errors
+def bag_info_command(bag, rig_path) -> None:
+    """List a ROS bag's topics (type, messages, rate, frame), propose the topics for `dem-graph run`, and print the rig it would read from
+    the bag (CameraInfo, LaserScan, tf) as YAML."""
+    from dem_graph.datasets.bag_info import bag_info
+
+    for line in bag_info(bag, rig_path).lines():
+        click.echo(line)
+
+
+@main.command("config")
+@_friendly_errors
+def config_command() -> None:
+    """Print the whole default run configuration as YAML, each setting under its meaning and unit
+    (`dem-graph config > my.yaml`, edit, then `dem-graph run DATASET --config my.yaml`)."""
+    from dem_graph.pipeline.config_yaml import config_yaml
+
+    click.echo(config_yaml(), nl=False)
 
 
 @main.command()
@@ -520,6 +547,25 @@ def _read_calibration_recording(recording: Path, layout: str, topics: dict):
     return read_rosbag_recording(recording, **topics)
 
 
+def _camera_body_pose(rig_path, height_m: float | None, pitch_deg: float | None):
+    """``T_body_cam`` of a calibration without ``--rig``: the camera ``height_m`` above the body origin on the ground,
+    pitched down ``pitch_deg``; None with ``--rig`` (its own). Neither given: refused, the body frame would be the camera's."""
+    import numpy as np
+
+    from dem_graph.geometry.rig import camera_mount
+
+    if rig_path is not None:
+        if height_m is not None or pitch_deg is not None:
+            raise click.UsageError("--camera-height-m and --camera-pitch-deg are for a calibration without --rig (the rig's T_body_cam is used): leave them out")
+        return None
+    if height_m is None or pitch_deg is None:
+        raise click.UsageError(
+            "the body's pose is unknown: give --rig RIG.yaml (its T_body_cam), or --camera-height-m H --camera-pitch-deg P (the camera H m above the "
+            "ground, pitched P degrees down; the body origin on the ground below it, z up), else the rig would put the body at the camera"
+        )
+    return camera_mount([0.0, 0.0, height_m], np.radians(pitch_deg))
+
+
 @main.command()
 @click.argument("recording", type=click.Path(path_type=Path))
 @click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Rig YAML to update [default: one made from the recording's intrinsics and scans].")
@@ -546,10 +592,12 @@ def _read_calibration_recording(recording: Path, layout: str, topics: dict):
 @click.option("--plane-tol-m", type=click.FloatRange(min=0.0, min_open=True), default=None, help="Farthest an on-board return may lie from the board's plane, metres [default: 4 sigma of the range noise].")
 @click.option("--dark-bias/--no-dark-bias", default=True, show_default=True, help="Estimate and remove the range bias of returns on dark squares.")
 @click.option("--jackknife/--no-jackknife", default=True, show_default=True, help="Also the leave-one-pose-out spread of the estimate.")
+@click.option("--camera-height-m", type=click.FloatRange(min=0.0, min_open=True), default=None, help="Without --rig: the camera's height above the ground, metres (with --camera-pitch-deg: T_body_cam).")
+@click.option("--camera-pitch-deg", type=click.FloatRange(-90.0, 90.0), default=None, help="Without --rig: the camera's pitch below the horizontal, degrees (positive: looking down).")
 @_friendly_errors
 def calibrate(
     recording, rig_path, out_dir, layout, board_corners, square_m, image_topic, scan_topic, camera_info_topic, intrinsics_path, window_deg, max_dt_s,
-    range_sigma_m, fix_range_sigma, board_margin_m, plane_tol_m, dark_bias, jackknife,
+    range_sigma_m, fix_range_sigma, board_margin_m, plane_tol_m, dark_bias, jackknife, camera_height_m, camera_pitch_deg,
 ) -> None:
     """Estimate T_cam_laser from checkerboard views and write the rig with it."""
     import numpy as np
@@ -569,10 +617,11 @@ def calibrate(
     board = _calibration_board(data.board, board_corners, square_m)
     if board is None:
         raise click.UsageError(f"the board's size is not known ({recording} does not give it): give --board COLSxROWS and --square-m")
-    rig = load_rig(rig_path) if rig_path else rig_from_recording(data, range_sigma_m or 0.01, source=recording)  # a bad recording fails here, first
+    mount = _camera_body_pose(rig_path, camera_height_m, camera_pitch_deg)
+    rig = load_rig(rig_path) if rig_path else rig_from_recording(data, range_sigma_m or 0.01, source=recording, T_body_cam=mount)  # a bad recording fails here, first
     result = calibrate_recording(data, options, board)
     if not rig_path:  # the rig made from the recording carries the noise the calibration found
-        rig = rig_from_recording(data, result.noise.sigma_m, source=recording)
+        rig = rig_from_recording(data, result.noise.sigma_m, source=recording, T_body_cam=mount)
     paths = write_calibration(result, data, rig, out_dir, max_dt_s)
     used = sum(v.used for v in result.views)
     click.echo(f"T_cam_laser from {used} of {len(result.views)} views:\n{np.array2string(result.T_cam_laser, precision=4, suppress_small=True)}")

@@ -344,7 +344,7 @@ def test_calibrate_command_on_jpeg_names_and_mat(simulated, rec, tmp_path):
     truth = yaml.safe_load((rec / "truth.yaml").read_text())
     board = truth["board"]
     out = tmp_path / "out"
-    args = ["calibrate", str(rec), "--intrinsics", str(rec / "Calib_Results.mat"), "--out", str(out)]
+    args = ["calibrate", str(rec), "--intrinsics", str(rec / "Calib_Results.mat"), "--out", str(out), "--camera-height-m", "1.2", "--camera-pitch-deg", "20"]
     args += ["--board", f"{board['cols']}x{board['rows']}", "--square-m", str(board["square_m"])]  # a .mat file has no board
     run = CliRunner().invoke(main, args)
     assert run.exit_code == 0, run.output

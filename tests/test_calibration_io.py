@@ -102,7 +102,7 @@ def test_simulated_recording_calibrates_through_the_command(tmp_path):
     rec = read_radlocc_recording(tmp_path / "rec")
     np.testing.assert_array_equal(rec.scans.ranges_m, sim.scans.ranges_m)
     out = tmp_path / "out"
-    run = CliRunner().invoke(main, ["calibrate", str(tmp_path / "rec"), "--out", str(out), "--range-sigma-m", "0.01"])
+    run = CliRunner().invoke(main, ["calibrate", str(tmp_path / "rec"), "--out", str(out), "--range-sigma-m", "0.01", "--camera-height-m", "1.2", "--camera-pitch-deg", "20"])
     assert run.exit_code == 0, run.output
     report = json.loads((out / "calibration.json").read_text())
     T = np.asarray(report["T_cam_laser"])
@@ -111,6 +111,9 @@ def test_simulated_recording_calibrates_through_the_command(tmp_path):
 
     rig = load_rig(out / "rig.yaml")
     np.testing.assert_allclose(rig.T_cam_laser, T, atol=1e-9)
+    # the body on the ground 1.2 m below the camera, z up; the camera looking 20 degrees down
+    np.testing.assert_allclose(rig.T_body_cam[:3, 3], [0.0, 0.0, 1.2], atol=1e-12)
+    np.testing.assert_allclose(rig.T_body_cam[:3, 2], [np.cos(np.radians(20)), 0.0, -np.sin(np.radians(20))], atol=1e-12)
     assert rig.T_cam_laser_covariance is not None
     assert (out / "views" / "view_01.png").is_file() and not (out / "views" / "view_00.png").exists()  # numbered as RGB1.png
     assert [v["number"] for v in report["views"]] == list(range(1, len(report["views"]) + 1))
@@ -131,7 +134,7 @@ def test_a_nan_in_the_recordings_intrinsics_is_refused_naming_the_field(tmp_path
     xml = next((tmp_path / "rec").rglob("out_camera_data.xml"))
     intr, board = read_opencv_intrinsics(xml)
     write_opencv_intrinsics(Intrinsics(intr.K, np.array([0.1, np.nan, 0.0, 0.0, 0.0]), intr.width_px, intr.height_px), board, xml)
-    run = CliRunner().invoke(main, ["calibrate", str(tmp_path / "rec"), "--out", str(tmp_path / "out")])
+    run = CliRunner().invoke(main, ["calibrate", str(tmp_path / "rec"), "--out", str(tmp_path / "out"), "--camera-height-m", "1.2", "--camera-pitch-deg", "20"])
     assert run.exit_code == 2 and run.stderr.count("\n") == 1, run.output
     assert str(tmp_path / "rec") in run.stderr and "camera.distortion" in run.stderr
     assert not (tmp_path / "out" / "rig.yaml").exists()
@@ -183,3 +186,17 @@ def test_the_rig_keeps_its_camera_and_takes_the_new_laser_pose():
     np.testing.assert_allclose(new.T_body_cam, rig.T_body_cam, atol=0)
     np.testing.assert_allclose(new.T_cam_laser, T, atol=1e-12)
     np.testing.assert_allclose(np.asarray(new.T_cam_laser_covariance), cov)
+
+
+def test_without_the_bodys_pose_calibrate_refuses_in_one_line(tmp_path):
+    """Without --rig, the rig would put the body at the camera (T_body_cam the identity), against the body
+    convention (origin on the ground, z up) that the flat-ground seeding relies on: refused, naming the way out."""
+    from dem_graph.cli import main
+
+    sim = simulate_calibration(seed=5, n_views=3, range_sigma_m=0.01)
+    write_recording(sim, tmp_path / "rec", seed=5, samples=1)
+    run = CliRunner().invoke(main, ["calibrate", str(tmp_path / "rec"), "--out", str(tmp_path / "out")])
+    errors = [line for line in run.output.splitlines() if line.startswith("Error:")]
+    assert run.exit_code == 2 and len(errors) == 1, run.output
+    assert errors[0].startswith("Error: the body's pose is unknown: give --rig RIG.yaml (its T_body_cam), or --camera-height-m H --camera-pitch-deg P")
+    assert not (tmp_path / "out").exists()

@@ -167,7 +167,7 @@ def test_bag_and_folder_of_one_simulation_calibrate_alike_and_near_the_truth(rec
 
 def test_command_calibrates_a_bag_with_the_board_given(recorded):
     out = recorded.tmp / "out"
-    args = ["calibrate", str(recorded.bag), "--format", "rosbag", "--image-topic", IMAGE, "--scan-topic", SCAN, "--camera-info-topic", INFO]
+    args = ["calibrate", str(recorded.bag), "--format", "rosbag", "--image-topic", IMAGE, "--scan-topic", SCAN, "--camera-info-topic", INFO, "--camera-height-m", "1.2", "--camera-pitch-deg", "20"]
     run = CliRunner().invoke(main, [*args, "--board", "9x6", "--square-m", "0.09", "--range-sigma-m", str(RANGE_SIGMA_M), "--out", str(out)])
     assert run.exit_code == 0, run.output
     T = np.asarray(json.loads((out / "calibration.json").read_text())["T_cam_laser"])

@@ -119,9 +119,9 @@ def write_bag(path, ros1: bool, skip_topic: str | None = None, messages=None, mc
         for topic, msgtype, t_ns, msg in (messages or _messages)(store, ros1):
             if topic == skip_topic:
                 continue
-            if topic not in connections:
-                connections[topic] = writer.add_connection(topic, msgtype, typestore=store)
-            writer.write(connections[topic], t_ns, serialize(msg, msgtype))
+            if (topic, msgtype) not in connections:  # a topic may carry two types (ROS 1's /tf: TFMessage and tf/tfMessage)
+                connections[topic, msgtype] = writer.add_connection(topic, msgtype, typestore=store)
+            writer.write(connections[topic, msgtype], t_ns, serialize(msg, msgtype))
             if mcap and chunk_bytes is not None and writer.storage.chunk.bio.tell() > chunk_bytes:
                 writer.storage.close_chunk()
     return path

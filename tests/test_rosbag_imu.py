@@ -162,15 +162,19 @@ def test_a_non_finite_sample_is_skipped_with_one_warning(tmp_path, caplog):
     assert np.array_equal(np.array([s.accel_mps2 for s in samples]), accel[keep])
 
 
-def test_a_rig_without_an_imu_section_is_refused(tmp_path):
+def test_a_rig_without_an_imu_section_takes_the_imu_noise_from_the_defaults(tmp_path):
+    """Since the rig comes from the bag (tests/test_bag_rig.py), a rig file without an imu section no
+    longer refuses an IMU topic: the noise figures are ImuSpec's defaults, T_body_imu from tf."""
+    from dem_graph.geometry.rig import ImuSpec
+
     bag = write_imu_bag(tmp_path / "log.bag", True)
     rig = tmp_path / "rig.yaml"
     save_rig(_rig().model_copy(update={"imu": None}), rig)
     options = DatasetOptions(rig=rig, image_topic="/cam/image", scan_topic="/scan", imu_topic=IMU)
-    with pytest.raises(DatasetError, match=r"log\.bag topic /imu/data: an IMU topic needs the rig to have an imu section") as info:
-        open_dataset(bag, None, options)
-    message = str(info.value)
-    assert "\n" not in message and "add one to the rig YAML" in message and "gyro_noise_density" in message and "T_body_imu" in message
+    seq = open_dataset(bag, None, options)
+    assert seq.has_imu and seq.rig.imu.gyro_noise_density == ImuSpec().gyro_noise_density
+    assert abs(seq.rig.imu.rate_hz - RATE_HZ) < 1e-3
+    np.testing.assert_allclose(seq.rig.T_body_imu, T_BODY_IMU, rtol=0, atol=1e-12)
     # without the IMU topic the same rig opens the bag
     assert not open_dataset(bag, None, DatasetOptions(rig=rig, image_topic="/cam/image", scan_topic="/scan")).has_imu
 

@@ -20,8 +20,10 @@ from dem_graph.errors import DatasetError
 from dem_graph.geometry.rig import SensorRig, save_rig, validated
 
 
-def rig_from_recording(recording: CalibrationRecording, range_sigma_m: float = 0.02, source: str | Path | None = None) -> SensorRig:
-    """A rig with the recording's camera (at the body origin) and its scanner's beams; ``T_cam_laser`` is the identity.
+def rig_from_recording(recording: CalibrationRecording, range_sigma_m: float = 0.02, source: str | Path | None = None, T_body_cam=None) -> SensorRig:
+    """A rig with the recording's camera at ``T_body_cam`` (None: at the body origin, the body frame the
+    camera's, which breaks the body convention of an origin on the ground, z up: ``dem-graph calibrate``
+    asks for the camera's height and pitch instead) and its scanner's beams; ``T_cam_laser`` is the identity.
 
     Every value is validated as a rig file's would be: a bad one is a :class:`ConfigError` naming
     ``source`` (the recording) and the field."""
@@ -35,12 +37,12 @@ def rig_from_recording(recording: CalibrationRecording, range_sigma_m: float = 0
         "cx_px": float(K[0, 2]),
         "cy_px": float(K[1, 2]),
         "distortion": [float(x) for x in intr.distortion],
-        "T_body_cam": np.eye(4).tolist(),
+        "T_body_cam": (np.eye(4) if T_body_cam is None else np.asarray(T_body_cam, dtype=float)).tolist(),
     }
     beams = {"kind": "planar", "angle_min_rad": float(scans.angle_min_rad), "angle_increment_rad": float(scans.angle_increment_rad), "count": int(scans.n_beams)}
     finite = scans.ranges_m[np.isfinite(scans.ranges_m)]
     range_max = float(max(finite.max() if finite.size else 30.0, 1.0))
-    laser = {"T_body_laser": np.eye(4).tolist(), "beams": beams, "range_max_m": range_max, "range_sigma_m": float(range_sigma_m)}
+    laser = {"T_body_laser": camera["T_body_cam"], "beams": beams, "range_max_m": range_max, "range_sigma_m": float(range_sigma_m)}
     return validated(SensorRig, {"camera": camera, "laser": laser}, source)
 
 

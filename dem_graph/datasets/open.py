@@ -20,18 +20,19 @@ class DatasetOptions:
     ring: int | None = None  # KITTI: the Velodyne ring used as the line laser (default: the one hitting the road ~10 m ahead)
     camera: int | None = None  # KITTI raw: the camera, 0-3 (default: the first the drive holds)
     truth: str | None = None  # KITTI raw: the true trajectory from the OXTS "positions" (default) or "velocities"
-    rig: Path | None = None  # rosbag: the rig YAML
+    rig: Path | None = None  # rosbag: a rig YAML over the rig the bag holds, field by field (default: the bag's own)
     image_topic: str | None = None  # rosbag
     scan_topic: str | None = None  # rosbag
     odometry_topic: str | None = None  # rosbag
     imu_topic: str | None = None  # rosbag: sensor_msgs/Imu (the rig needs an imu section)
-    body_frame: str | None = None  # rosbag: tf frame names for the extrinsics (when tf_static has them)
-    camera_frame: str | None = None
-    laser_frame: str | None = None
+    body_frame: str | None = None  # rosbag: the body's tf frame (default: base_footprint, else base_link)
+    camera_frame: str | None = None  # rosbag: the camera's tf frame (default: the images' frame_id; given: tf wins over --rig)
+    laser_frame: str | None = None  # rosbag: the laser's tf frame (default: the scans' frame_id; given: tf wins over --rig)
+    camera_info_topic: str | None = None  # rosbag: sensor_msgs/CameraInfo (default: the image topic's sibling camera_info)
     input_checks: InputChecks | None = None  # folder, rosbag: the limits bad input is held to (None: the defaults)
 
 
-_ROSBAG_ONLY = ("rig", "image_topic", "scan_topic", "odometry_topic", "imu_topic", "body_frame", "camera_frame", "laser_frame")
+_ROSBAG_ONLY = ("rig", "image_topic", "scan_topic", "odometry_topic", "imu_topic", "body_frame", "camera_frame", "laser_frame", "camera_info_topic")
 USED_OPTIONS: dict[str, tuple[str, ...]] = {  # the DatasetOptions each format reads
     "folder": ("input_checks",),
     "kitti-odometry": ("sequence", "ring"),
@@ -87,29 +88,43 @@ def open_dataset(path: str | Path, format: str | None = None, options: DatasetOp
 
         return open_kitti(path, fmt, options.sequence, options.ring, camera=options.camera, truth=options.truth)
     if fmt == "rosbag":
-        from dem_graph.datasets.rosbag import RosbagSequence
-        from dem_graph.geometry.rig import load_rig
-
-        missing = [
-            n
-            for n, v in (("a rig file", options.rig), ("the image topic", options.image_topic), ("the scan topic", options.scan_topic))
-            if v is None
-        ]
-        if missing:
-            raise DatasetError(path, f"a ROS bag needs {', '.join(missing)}")
-        return RosbagSequence(
-            path,
-            load_rig(options.rig),
-            options.image_topic,
-            options.scan_topic,
-            options.odometry_topic,
-            body_frame=options.body_frame,
-            camera_frame=options.camera_frame,
-            laser_frame=options.laser_frame,
-            checks=options.input_checks,
-            imu_topic=options.imu_topic,
-        )
+        return _open_bag(path, options)
     raise DatasetError(path, f"unknown dataset format {fmt!r}: choose from {', '.join(FORMATS)}")
+
+
+def _open_bag(path: str | Path, options: DatasetOptions) -> Sequence:
+    """A ROS bag with the rig it holds (:mod:`~dem_graph.datasets.bag_rig`), ``options.rig`` over it field by field."""
+    from dem_graph.datasets.bag_rig import BagTopics, rig_of_bag
+    from dem_graph.datasets.rosbag import RosbagSequence, open_bag
+
+    missing = [n for n, v in (("--image-topic", options.image_topic), ("--scan-topic", options.scan_topic)) if v is None]
+    if missing:
+        raise DatasetError(path, f"a ROS bag needs {' and '.join(missing)} (`dem-graph bag-info {path}` lists its topics and proposes them)")
+    topics = BagTopics(
+        options.image_topic, options.scan_topic, options.odometry_topic, options.imu_topic, options.camera_info_topic,
+        options.body_frame, options.camera_frame, options.laser_frame,
+    )
+    checks = options.input_checks or InputChecks()
+    if Path(path).exists():
+        with open_bag(path, quiet=True) as reader:
+            rig, derived = rig_of_bag(reader, path, topics, options.rig, checks.max_skipped_fraction)
+        body = options.body_frame or (derived.body_frame if derived.from_tf else None)
+    else:  # the reader's own error names the path
+        from dem_graph.geometry.rig import default_rig
+
+        rig, body = default_rig(), options.body_frame
+    return RosbagSequence(
+        path,
+        rig,
+        options.image_topic,
+        options.scan_topic,
+        options.odometry_topic,
+        body_frame=body,
+        camera_frame=options.camera_frame,
+        laser_frame=options.laser_frame,
+        checks=options.input_checks,
+        imu_topic=options.imu_topic,
+    )
 
 
 def reopen_dataset(path: str | Path, recorded: dict | None) -> Sequence:

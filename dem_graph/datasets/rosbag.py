@@ -284,6 +284,8 @@ def check_topic(reader, path: str | Path, topic: str, types: tuple[str, ...]) ->
 def topic_messages(reader, topic: str, start_ns: int | None = None, stop_ns: int | None = None) -> Iterator[tuple[int, object]]:
     """``(bag time ns, deserialised message)`` of ``topic`` in bag order, between ``start_ns`` and ``stop_ns`` (excluded) when given."""
     connections = [c for c in reader.connections if c.topic == topic]
+    if not connections:  # rosbags reads every topic when given none
+        return
     for connection, t_ns, raw in reader.messages(connections=connections, start=start_ns, stop=stop_ns):
         yield t_ns, reader.deserialize(raw, connection.msgtype)
 
@@ -377,6 +379,14 @@ class TransformTree:
             return  # the first one seen stands
         self._edges.setdefault(parent, {})[child] = T_parent_child
         self._edges.setdefault(child, {})[parent] = invert(T_parent_child)
+
+    def has(self, frame: str) -> bool:
+        """Whether a transform names ``frame``."""
+        return frame.lstrip("/") in self._edges
+
+    def frames(self) -> list[str]:
+        """Every frame a transform names."""
+        return list(self._edges)
 
     def lookup(self, target: str, source: str) -> np.ndarray | None:
         """``T_target_source`` (maps ``source`` coordinates into ``target``), None when not linked."""

@@ -4,7 +4,10 @@ A run's settings come from four layers, each over the one before (:func:`run_con
 
 1. the defaults of :class:`RunConfig`;
 2. the dataset's own run settings (:meth:`Sequence.run_settings`: KITTI brings a car's);
-3. the user's YAML file (``--config``; a run folder's ``config.yaml`` is one);
+3. the user's YAML file (``--config``; a run folder's ``config.yaml`` is one; ``dem-graph config``
+   writes the defaults as one). A value in it that restates a default where the dataset brings its
+   own setting leaves the dataset's in place (:func:`without_restated_defaults`): only a value that
+   differs from the default wins over a dataset's setting;
 4. explicit overrides (:class:`RunOverrides`: the command line's flags).
 
 ``dem-graph run`` and :func:`dem_graph.pipeline.run.run_dataset` both build their configuration
@@ -146,6 +149,33 @@ def merge_settings(base: dict, over: dict) -> dict:
     return out
 
 
+def without_restated_defaults(given: dict, dataset: dict, defaults: dict, prefix: str = "") -> tuple[dict, list[str]]:
+    """``given`` (a configuration file's mapping) without the values that restate a default where
+    ``dataset`` (a dataset's run settings) sets the key, and the dotted names of those left out: a
+    file that restates the defaults (``dem-graph config``) leaves a dataset's own settings in place,
+    a value that differs from the default wins over them."""
+    out, kept = {}, []
+    for key, value in given.items():
+        name = f"{prefix}{key}"
+        if key in dataset and isinstance(value, dict) and isinstance(dataset[key], dict) and isinstance(defaults.get(key), dict):
+            out[key], inner = without_restated_defaults(value, dataset[key], defaults[key], name + ".")
+            kept += inner
+        elif key in dataset and key in defaults and _same(value, defaults[key]):
+            kept.append(name)
+        else:
+            out[key] = value
+    return out, kept
+
+
+def _same(a, b) -> bool:
+    """Equal as YAML values (a tuple and a list of the same items are)."""
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, bool) or isinstance(b, bool):
+        return a is b
+    return a == b
+
+
 # the Fig. 8 window's settings sat under ``dem`` before they had a section of their own
 _MOVED_TO_LOCAL_ERROR = {"local_start_m": "start_m", "local_length_m": "length_m", "local_width_m": "width_m", "local_every_n_frames": "every_n_frames"}
 
@@ -192,7 +222,12 @@ def run_config(sequence: Sequence | None = None, config_file: str | Path | None 
     data: dict = sequence.run_settings() if sequence is not None else {}
     path = Path(config_file) if config_file is not None else None
     if path is not None:
-        data = merge_settings(data, read_config_file(path))
+        given = read_config_file(path)
+        if data:
+            given, kept = without_restated_defaults(given, data, RunConfig().model_dump(mode="json"))
+            if kept:
+                log.info("%s: %d values restate a default where the dataset brings its own setting: the dataset's kept (%s)", path, len(kept), ", ".join(kept))
+        data = merge_settings(data, given)
     try:
         config = RunConfig.model_validate(data)
         if overrides is not None:
@@ -202,4 +237,4 @@ def run_config(sequence: Sequence | None = None, config_file: str | Path | None 
     return config
 
 
-__all__ = ["DemConfig", "ESTIMATORS", "GRAPH_ESTIMATORS", "configured_estimator", "EstimatorName", "LiveMapConfig", "RunConfig", "RunOverrides", "merge_settings", "read_config_file", "run_config"]
+__all__ = ["DemConfig", "ESTIMATORS", "GRAPH_ESTIMATORS", "configured_estimator", "EstimatorName", "LiveMapConfig", "RunConfig", "RunOverrides", "merge_settings", "read_config_file", "run_config", "without_restated_defaults"]

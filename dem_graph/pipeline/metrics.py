@@ -139,6 +139,37 @@ def graph_update_line(g: GraphUpdateTiming, events: dict) -> str:
     return line
 
 
+LOW_YIELD_FRACTION = 0.25
+"""Below this fraction of searches matched, a run's summary names the setting to look at (:func:`yield_advice`)."""
+
+# why searches failed, and the setting a vehicle's speed or frame rate makes wrong for that reason
+_ADVICE = {
+    "search_too_large": "the predicted motion between frames is larger than the search allows: frontend.tracker.max_search_half_size_px (a car at 10 Hz: 80), "
+    "and without odometry motion.initial_speed_mps and motion.sigma_*_acc",
+    "out_of_image": "points leave the image before they are found again: frontend.focus (nominal_speed_mps, max_distance_m) for the vehicle's speed",
+    "low_texture": "the ground has little texture at the points chosen: frontend.tracker.min_patch_std_dn and frontend.focus.cell_size_m",
+    "low_score": "the templates change too much between frames (a low frame rate, motion blur): the camera's rate, or frontend.tracker.min_score",
+    "ambiguous": "repeated texture within the search regions: frontend.tracker.ambiguity_margin, or smaller regions (motion.sigma_*_acc)",
+    "peak_at_border": "points tracked at the image border: frontend.focus, so that points lie further inside the image",
+    "peak_outside_gate": "the motion model predicts badly: motion.sigma_*_acc, or frontend.tracker.refuse_peak_outside_gate off",
+}
+
+
+def yield_advice(y: TrackingYield | None, threshold: float = LOW_YIELD_FRACTION) -> str | None:
+    """A warning naming the setting to look at when fewer than ``threshold`` of the searches matched
+    (the main reason of the failures picks it); None when the yield is fine or nothing was searched."""
+    if y is None or y.searches == 0 or y.matched_fraction >= threshold:
+        return None
+    if not y.failed_fraction:
+        return f"warning: only {100 * y.matched_fraction:.0f} % of the searches matched (docs/guide/own_robot.md, tuning)"
+    reason, share = max(y.failed_fraction.items(), key=lambda kv: kv[1])
+    advice = _ADVICE.get(reason, "docs/guide/own_robot.md, tuning")
+    return (
+        f"warning: only {100 * y.matched_fraction:.0f} % of the searches matched (under {100 * threshold:.0f} %), most failed as "
+        f"{reason.replace('_', ' ')} ({100 * share:.0f} %): {advice} (docs/guide/own_robot.md, tuning)"
+    )
+
+
 def summary_lines(m: RunMetrics) -> list[str]:
     """A run's metrics in a few lines, as ``dem-graph run`` prints them."""
     lines = [f"{m.estimator}: {m.frames or 0} frames in {m.elapsed_s or 0.0:.1f} s"]
@@ -153,6 +184,9 @@ def summary_lines(m: RunMetrics) -> list[str]:
         lines.append(
             f"tracking: {100 * y.matched_fraction:.0f} % of {y.searches} searches matched ({100 * y.outlier_fraction_of_matched:.0f} % of them then rejected as outliers); failed: {failed}"
         )
+        advice = yield_advice(y)
+        if advice is not None:
+            lines.append(advice)
     if m.trajectory is not None:
         tr = m.trajectory
         lines.append(f"ATE RMSE {tr.ate_rmse_m:.3f} m ({tr.ate_aligned_rmse_m:.3f} m aligned), final error {tr.final_error_m:.3f} m over {tr.distance_m:.1f} m: drift {tr.drift_percent:.2f} %")
@@ -186,4 +220,4 @@ def summary_lines(m: RunMetrics) -> list[str]:
     return lines
 
 
-__all__ = ["PointsPerFrame", "RunMetrics", "compute_metrics", "laser_cells_error_text", "summary_lines"]
+__all__ = ["LOW_YIELD_FRACTION", "PointsPerFrame", "RunMetrics", "compute_metrics", "laser_cells_error_text", "summary_lines", "yield_advice"]

@@ -32,7 +32,7 @@ from dem_graph.pipeline.live_view import ViewerListener, ViewerOptions
 from dem_graph.pipeline.metrics import compute_metrics
 from dem_graph.pipeline.result import RunResult
 from dem_graph.pipeline.run_dem import DemFailure, RunDem, dem_from_result, make_run_dem
-from dem_graph.pipeline.run_folder import prepare_run_folder, write_run, write_run_config
+from dem_graph.pipeline.run_folder import prepare_run_folder, write_run, write_run_config, write_run_rig
 from dem_graph.progress import progress
 
 log = logging.getLogger(__name__)
@@ -209,12 +209,13 @@ def run_dataset(
     if out_dir is not None:
         prepare_run_folder(out_dir, overwrite)
         write_run_config(out_dir, config)
+        rig_path = write_run_rig(out_dir, sequence.rig)
     result = run_estimator(sequence, config, viewer=viewer, checkpoint_dir=out_dir)
     if where is not None:
         result.metrics.dataset = str(Path(where).resolve())
     result.metrics.dataset_options = sequence.open_options()
     if out_dir is not None:
-        result.paths = write_run(result, out_dir)
+        result.paths = {**write_run(result, out_dir), "rig": rig_path}
     return result
 
 

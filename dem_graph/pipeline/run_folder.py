@@ -9,6 +9,7 @@
       poses.npz              the poses the DEM was made from, with their covariances
       metrics.json           accuracy and timing numbers (pretty, sorted keys, NaN and infinities as null)
       config.yaml            the configuration the run used
+      rig.yaml               the rig the run used, whole (a bag's derived rig included): ``--rig`` reads it back
       dem.tif, dem.npz, dem.png, cloud.ply   the run's DEM (:func:`write_dem_outputs`)
       local_dem_error.csv    with ground truth: the Fig. 8 measure frame by frame, in hindsight
       live_map.tif           the map as it was built while the run went (GeoTIFF, layers as dem.tif's)
@@ -38,6 +39,7 @@ from dem_graph.dem.returns import GroundReturns, PoseTrack, map_point_returns
 from dem_graph.dem.views import to_local
 from dem_graph.errors import ConfigError, DatasetError, DemGraphError
 from dem_graph.evaluation.dem_metrics import LocalErrorSeries
+from dem_graph.geometry.rig import SensorRig, rig_to_dict
 from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.io.dem_files import write_cloud_ply, write_dem_geotiff, write_dem_npz
 from dem_graph.io.live_maps import live_map_at
@@ -53,6 +55,7 @@ from dem_graph.viz.dem_figure import write_dem_png
 TRAJECTORY_TUM = "trajectory.tum"
 METRICS_JSON = "metrics.json"
 CONFIG_YAML = "config.yaml"
+RIG_YAML = "rig.yaml"
 POSES_NPZ = "poses.npz"
 POINTS_PLY = "points.ply"
 LOCAL_ERROR_CSV = "local_dem_error.csv"
@@ -196,6 +199,13 @@ def write_run_config(out_dir: str | Path, config: RunConfig) -> Path:
     """The run's ``config.yaml`` alone, as the run starts: the folder says what run it holds."""
     path = Path(out_dir) / CONFIG_YAML
     _write_text(path, _config_text(config.model_dump(mode="json")))
+    return path
+
+
+def write_run_rig(out_dir: str | Path, rig: SensorRig) -> Path:
+    """The run's ``rig.yaml``: the rig the run used, every field, as :func:`~dem_graph.geometry.rig.load_rig` reads it."""
+    path = Path(out_dir) / RIG_YAML
+    _write_text(path, yaml.safe_dump(rig_to_dict(rig), sort_keys=False, default_flow_style=None))
     return path
 
 
