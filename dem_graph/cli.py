@@ -159,9 +159,10 @@ def _pop_dataset_options(kwargs: dict) -> dict:
 @click.option("--max-frames", type=int, default=None, help="Stop after this many camera frames.")
 @click.option("--viewer", is_flag=True, help="Show the run live in rerun (pip install 'dem-graph[viewer]'): image and tracked points, live local map, trajectory.")
 @click.option("--record", "record_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Save what --viewer shows to this rerun recording (.rrd), without a screen.")
+@click.option("--viewer-colour", "viewer_colour", type=click.Choice(["height", "sigma"]), default="height", show_default=True, help="Colour the viewer's map surfaces by height or by the height's standard deviation.")
 @_dataset_options
 @_friendly_errors
-def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_dir, overwrite, config_path, max_points, no_odometry, no_imu, max_frames, viewer, record_path, **kwargs) -> None:
+def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_dir, overwrite, config_path, max_points, no_odometry, no_imu, max_frames, viewer, record_path, viewer_colour, **kwargs) -> None:
     """Run an estimator over a dataset (folder, KITTI or ROS bag); write trajectory.tum, points.ply, metrics.json, config.yaml
     (isam2 also trajectory_smoothed.tum; isam2-batch also trajectory_online.tum)."""
     from dem_graph.pipeline.config import GRAPH_ESTIMATORS, RunOverrides, configured_estimator
@@ -180,7 +181,7 @@ def run(dataset, estimator, lag_s, keyframe_every, graph_process, realtime, out_
         chosen = configured_estimator(config_path, overrides)
         if chosen not in GRAPH_ESTIMATORS:
             raise click.UsageError(f"{', '.join(graph_only)}: used only by --estimator {' or '.join(GRAPH_ESTIMATORS)}, not by {chosen} (the run's estimator): leave {'it' if len(graph_only) == 1 else 'them'} out or choose one of those")
-    shown = ViewerOptions(spawn=viewer, record_path=record_path) if viewer or record_path else None
+    shown = ViewerOptions(spawn=viewer, record_path=record_path, colour_by=viewer_colour) if viewer or record_path else None
     result = run_dataset(dataset, overrides, config_path, out_dir, _dataset_options_of(options), fmt, viewer=shown, overwrite=overwrite)
     for line in summary_lines(result.metrics):
         click.echo(line)

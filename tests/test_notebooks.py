@@ -14,6 +14,7 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 nbformat = pytest.importorskip("nbformat", reason="executing the notebooks needs nbformat (pip install -e '.[dev]')")
@@ -94,3 +95,36 @@ def test_estimator_study_notebook_table_figure_and_conclusion(tmp_path):
     best = min(mean_ate, key=mean_ate.get)
     conclusion = (tmp_path / "conclusion.md").read_text()
     assert f"{best} had the lowest mean ATE, {mean_ate[best]:.3f} m over {len(seeds)} runs" in conclusion
+
+
+def test_getting_started_notebook_runs_in_its_own_configuration_against_the_truth(tmp_path):
+    """The getting-started notebook as a newcomer runs it (its own parameters, only the folder
+    changed): the ATE it reports is the one the run folder's trajectory gives against the
+    simulator's true trajectory (1e-9 m), small on this 4 m drive, and its DEM and live map errors are
+    within bounds against the true terrain."""
+    from dem_graph import open_dataset
+    from dem_graph.io.tum import read_tum
+
+    nb = nbformat.read(NOTEBOOKS / "getting_started.ipynb", as_version=4)
+    own = next(c for c in nb.cells if "parameters" in c.metadata.get("tags", []))
+    parameters = own.source.replace('OUT_DIR = "out/getting_started"', f"OUT_DIR = {str(tmp_path)!r}")
+    assert parameters != own.source and "ESTIMATORS = (\"ptpm\", \"isam2\")" in parameters
+    _check_kernel(_execute("getting_started.ipynb", parameters, tmp_path))
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    truth = open_dataset(tmp_path / "dataset").ground_truth.trajectory
+    for name in ("ptpm", "isam2"):
+        # the notebook's ATE, again from the files: the run's trajectory against the true one at the same times
+        estimate = read_tum(tmp_path / name / "trajectory.tum")
+        error_m = np.linalg.norm(estimate.positions_xyz - truth.at(estimate.t_s)[:, :3, 3], axis=1)
+        assert summary["ate_m"][name] == pytest.approx(float(np.sqrt(np.mean(error_m**2))), abs=1e-9)
+        # and the run's own metrics agree to the TUM file's rounding
+        metrics = json.loads((tmp_path / name / "metrics.json").read_text())
+        assert summary["ate_m"][name] == pytest.approx(metrics["trajectory"]["ate_rmse_m"], abs=1e-6)
+        assert summary["dem_rmse_m"][name] == pytest.approx(metrics["dem"]["height_error_laser_cells"]["rmse_m"], abs=1e-6)
+        # on the 4 m smoke drive both estimators stay within 2 cm of the truth (measured 4 mm) and map within 2 cm (measured 1 cm)
+        assert 0.0 < summary["ate_m"][name] < 0.02
+        assert 0.0 < summary["dem_rmse_m"][name] < 0.02
+    # the live map at 2 s: cells ahead known, within 3 cm of the terrain under them
+    live = summary["live"]
+    assert live["t_s"] == pytest.approx(2.0, abs=0.05) and live["cells"] > 50
+    assert 0.0 < live["rmse_m"] < 0.03

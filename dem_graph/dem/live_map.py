@@ -113,6 +113,13 @@ class LiveMap:
         return placed
 
     # --- revisions ---------------------------------------------------------------------------
+    def newest_returns_world(self, n_scans: int) -> np.ndarray:
+        """(N,3) world positions of the valid returns of the newest ``n_scans`` scans still open to
+        revision, each placed with the pose its scan is held at now."""
+        scans = list(self._log)[max(0, len(self._log) - int(n_scans)) :] if n_scans > 0 else []
+        parts = [s.p_body @ s.T_world_body[:3, :3].T + s.T_world_body[:3, 3] for s in scans if len(s.p_body)]
+        return np.concatenate(parts) if parts else np.zeros((0, 3))
+
     @property
     def logged_times_s(self) -> np.ndarray:
         """Times of the scans still open to revision."""

@@ -9,6 +9,7 @@ from pathlib import Path
 from dem_graph.datasets.base import GroundTruth
 from dem_graph.frontend.frontend import PointKind
 from dem_graph.pipeline.live import LivePipeline, LiveUpdate
+from dem_graph.viz.map_view import scan_returns_world
 from dem_graph.viz.rerun_viewer import RerunViewer
 
 LASER_KINDS = (int(PointKind.LASER),)
@@ -20,6 +21,7 @@ class ViewerOptions:
 
     spawn: bool = False
     record_path: Path | None = None
+    colour_by: str = "height"  # the map surfaces' colour: "height", or "sigma" (the height's standard deviation)
 
 
 class ViewerListener:
@@ -27,7 +29,12 @@ class ViewerListener:
 
     def __init__(self, pipeline: LivePipeline, options: ViewerOptions, truth: GroundTruth | None = None):
         self.pipeline = pipeline
-        self.viewer = RerunViewer(pipeline.name, spawn=options.spawn, record_path=options.record_path)
+        live_map = pipeline.map
+        self.viewer = RerunViewer(
+            pipeline.name, spawn=options.spawn, record_path=options.record_path, colour_by=options.colour_by,
+            global_map=lambda: live_map.global_dem(traversability_window=None) if live_map.grid.n_kept else None,
+        )
+        self._scans_shown = 0  # the live map's scans whose returns were shown
         frontend = getattr(pipeline.estimator, "frontend", None)
         if frontend is not None:
             frontend.record_view = True  # the searches of each frame, for the image
@@ -40,7 +47,8 @@ class ViewerListener:
         view = frontend.last_view if frontend is not None else None
         tracked = view.arrays() if view is not None and view.t_s == update.t_s else None
         _, xyz = est.live_points()
-        self.viewer.log_frame(update.t_s, update.image, tracked, LASER_KINDS, update.local.elevation, update.T_world_body, xyz)
+        returns_xyz, self._scans_shown = scan_returns_world(self.pipeline.map, self._scans_shown)
+        self.viewer.log_frame(update.t_s, update.image, tracked, LASER_KINDS, update.local.elevation, update.T_world_body, xyz, local_map=update.local, returns_xyz=returns_xyz)
 
     def close(self) -> None:
         self.viewer.close()
