@@ -129,7 +129,7 @@ class GraphClient:
         setup = GraphSetup(
             T_world_body.copy(), P0, t_s, c.lag_s, c.relinearize_threshold, c.relinearize_skip, c.marginalize_every_s, c.optimizer,
             rig.camera_model, np.array(rig.T_body_cam, dtype=float), c.frontend.camera_point_sigma_px, c.split_link_sigma_m, c.robust,
-            rig.imu if c.motion.use_imu else None, c.motion.initial_sigma_speed_mps, c.imu_every_s,
+            rig.imu if c.motion.use_imu else None, c.motion.initial_sigma_speed_mps,
         )  # fmt: skip
         self._graph = ProcessGraph(setup, c.graph_max_lag) if c.graph_process else InProcessGraph(setup, c.graph_delay_keyframes)
         self._when_behind = c.graph_when_behind or "merge"

@@ -44,7 +44,7 @@ from gtsam.symbol_shorthand import L, X
 
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
-from dem_graph.estimators.imu_preintegration import bias_sigmas, join_spans, preintegrate, preintegration_params
+from dem_graph.estimators.imu_preintegration import bias_sigmas, preintegrate, preintegration_params
 from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
 from dem_graph.frontend.frontend import PointKind
 from dem_graph.geometry.camera import PinholeCamera
@@ -70,7 +70,6 @@ class GraphSetup:
     robust: bool
     imu: ImuSpec | None = None  # the rig's IMU, when its samples are sent (KeyframeMessage.imu)
     imu_sigma_v0_mps: float = 1.0  # the prior on a keyframe's velocity where the IMU's factors start (the first, or after a restart or a gap)
-    imu_every_s: float = 0.0  # a keyframe at least this long after the last with velocity and bias variables gets its own (0: every keyframe)
 
 
 @dataclass(frozen=True)
@@ -137,8 +136,6 @@ class GraphWorker:
         self.failed = False
         self._cut_failure: str | None = None  # the last cut failed and no result has said so yet
         self._phases_since: dict[str, float] = {}  # the cut's time since the last result, seconds
-        self._nav_k: int | None = None  # the IMU chain's last keyframe with velocity and bias variables
-        self._imu_pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # the samples since it
 
     def apply(self, messages: list) -> GraphResult:
         """Add the messages' factors in order, then one update and the marginal when asked for. The
@@ -179,7 +176,7 @@ class GraphWorker:
             result.worker_s = time.perf_counter() - t0
             return result
         result.poses, result.points = g.window_estimates()
-        result.imu_bias = g.biases[max(g.biases)] if g.biases else None  # the chain's newest
+        result.imu_bias = g.biases.get(g.last_keyframe)
         result.phases.update(g.take_phases())
         result.worker_s = time.perf_counter() - t0
         return result
@@ -210,8 +207,6 @@ class GraphWorker:
             g.add_factor(odometry_factor(X(k - 1), X(k), m.U, m.Q))
             if m.imu is not None and self._imu_params is not None:
                 self._add_imu(k, m)
-            else:
-                self._nav_k, self._imu_pending = None, []  # a span without samples: the chain starts again
         for old, new, Sigma_old in m.links:
             X_old = g.points[old]
             g.add_point(new, X_old)
@@ -232,37 +227,26 @@ class GraphWorker:
                 g.add_factor(f)
 
     def _add_imu(self, k: int, m: KeyframeMessage) -> None:
-        """The IMU's samples since keyframe ``k - 1``, and its factor from the chain's last keyframe
-        with velocity and bias variables to ``k`` once ``k`` is ``imu_every_s`` after it (``k`` then
-        gets its own). Where the chain starts (the first span, after a restart, a span without
-        samples, or a chain keyframe marginalised), keyframe ``k - 1`` gets velocity and bias with
-        priors: the velocity of the motion to ``k``, within ``imu_sigma_v0_mps``; the latest bias
-        estimate (zero at first), within the rig's bias sigmas at the start."""
+        """The IMU's factor between keyframes ``k - 1`` and ``k``. Where the IMU's factors start (the
+        first span, or after a restart or a span without samples), keyframe ``k - 1`` gets its
+        velocity and bias with priors: the velocity of the motion to ``k``, within ``imu_sigma_v0_mps``;
+        the latest bias estimate (zero at first), within the rig's bias sigmas at the start."""
         g, spec = self.graph, self.setup.imu
-        if self._nav_k is None or not g.has_nav(self._nav_k):
-            self._imu_pending = []
-            if not g.has_nav(k - 1):
-                dt = g.keyframe_t_s[k] - g.keyframe_t_s[k - 1]
-                v_world = g.poses[k - 1][:3, :3] @ np.asarray(m.U)[:3, 3] / dt
-                latest = g.biases[max(g.biases)] if g.biases else np.zeros(6)
-                g.add_nav(k - 1, v_world, gtsam.imuBias.ConstantBias(latest[:3], latest[3:]), self.setup.imu_sigma_v0_mps, bias_sigmas(spec))
-            self._nav_k = k - 1
-        self._imu_pending.append(m.imu)
-        t_nav, t_k = g.keyframe_t_s[self._nav_k], g.keyframe_t_s[k]
-        if t_k - t_nav < self.setup.imu_every_s - 1e-9:
-            return
-        t, gyro, accel = join_spans(self._imu_pending)
-        b = g.biases[self._nav_k]
-        pim = preintegrate(self._imu_params, t, gyro, accel, t_nav, t_k, gtsam.imuBias.ConstantBias(b[:3], b[3:]))
-        g.add_imu(self._nav_k, k, pim)
-        self._nav_k, self._imu_pending = k, []
+        if not g.has_nav(k - 1):
+            dt = g.keyframe_t_s[k] - g.keyframe_t_s[k - 1]
+            v_world = g.poses[k - 1][:3, :3] @ np.asarray(m.U)[:3, 3] / dt
+            latest = g.biases[max(g.biases)] if g.biases else np.zeros(6)
+            g.add_nav(k - 1, v_world, gtsam.imuBias.ConstantBias(latest[:3], latest[3:]), self.setup.imu_sigma_v0_mps, bias_sigmas(spec))
+        b = g.biases[k - 1]
+        t, gyro, accel = m.imu
+        pim = preintegrate(self._imu_params, t, gyro, accel, g.keyframe_t_s[k - 1], g.keyframe_t_s[k], gtsam.imuBias.ConstantBias(b[:3], b[3:]))
+        g.add_imu(k - 1, k, pim)
 
     def _restart(self, m: RestartMessage) -> None:
         g = self.graph
         if m.k != g.last_keyframe:
             raise DemGraphError(f"restart at keyframe {m.k} sent to the graph, whose last keyframe is {g.last_keyframe}")
         self.failed = False
-        self._nav_k, self._imu_pending = None, []
         g.restart(m.T_world_body, m.P, m.point_priors)
 
     def final_estimates(self) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:

@@ -69,16 +69,6 @@ def preintegrate(
     return pim
 
 
-def join_spans(spans: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Consecutive spans of :meth:`ImuBuffer.span` (times, rates, forces) as one: each span repeats
-    the sample that holds at its start, which is kept once."""
-    t, gyro, accel = (np.asarray(a, dtype=float) for a in spans[0])
-    for t_i, gyro_i, accel_i in spans[1:]:
-        new = np.asarray(t_i) > t[-1]
-        t, gyro, accel = np.r_[t, np.asarray(t_i)[new]], np.vstack([gyro, np.asarray(gyro_i)[new]]), np.vstack([accel, np.asarray(accel_i)[new]])
-    return t, gyro, accel
-
-
 def gyro_rotation(
     spec: ImuSpec, samples: tuple[np.ndarray, np.ndarray, np.ndarray], t_a_s: float, t_b_s: float, gyro_bias_rad_s: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -28,14 +28,6 @@ class Isam2Options(StrictModel):
     marginalize_every_s: float = Field(
         0.5, gt=0, description="the window is cut back to the lag once it spans lag_s + this, seconds (one batch elimination of the window, made after a result has gone)"
     )
-    imu_every_s: float = Field(
-        0.2,
-        ge=0,
-        description="with an IMU, a keyframe at least this long after the last one with velocity and bias variables gets its own, and one "
-        "preintegrated IMU factor spans the time between them, seconds (0: every keyframe). Between keyframes 40 ms apart, a MEMS part's bias "
-        "random walk ties neighbouring biases with an information near 1e11, and iSAM2's elimination of the window then failed as indeterminate "
-        "(docs/imu.md)",
-    )
     relinearize_threshold: float = Field(0.01, gt=0, description="iSAM2 relinearises a variable whose update exceeds this")
     relinearize_skip: int = Field(1, ge=1, description="iSAM2 checks for relinearisation every this many updates")
     optimizer: Literal["dogleg", "gauss_newton"] = Field(
