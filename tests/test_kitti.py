@@ -367,7 +367,7 @@ def test_cli_runs_on_a_kitti_folder_and_names_a_missing_topic(tmp_path):
     bag = tmp_path / "x.bag"
     bag.write_bytes(b"")
     result = CliRunner().invoke(main, ["--no-progress", "run", str(bag), "--estimator", "ptpm", "--out", str(tmp_path / "r2")])
-    assert result.exit_code == 2 and "a ROS bag needs a rig file, the image topic, the scan topic" in result.output
+    assert result.exit_code == 2 and "a ROS bag needs --image-topic and --scan-topic" in result.output and "bag-info" in result.output
 
 
 def _box_scene(rng, n):

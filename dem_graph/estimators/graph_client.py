@@ -279,6 +279,8 @@ class GraphClient:
         self.points.update(r.points)
         if r.imu_bias is not None:
             self.imu_bias = r.imu_bias
+        if r.recoveries:
+            self._counters["graph_recoveries"] = max(self._counters["graph_recoveries"], r.recoveries)
         self._graph_lag.append(len(self.keyframe_t_s) - 1 - k)
         for phase, seconds in {"total": r.worker_s, **r.phases}.items():
             self.update_phases.setdefault(phase, []).append(seconds)

@@ -119,6 +119,7 @@ class GraphResult:
     points: dict[int, np.ndarray]  # every landmark in the window: X_world
     marginal: np.ndarray | None = None  # keyframe k's marginal pose covariance, when asked for
     imu_bias: np.ndarray | None = None  # keyframe k's IMU biases [accel m/s^2 (3), gyro rad/s (3)], with an IMU
+    recoveries: int = 0  # the graph's indeterminate windows eliminated again so far (KeyframeGraph.recoveries)
     failure: str | None = None  # the update failed: the graph waits for a RestartMessage
     waiting: bool = False  # keyframes that arrived while the graph waited for its restart
     worker_s: float = 0.0  # the graph's time on these messages, seconds
@@ -177,6 +178,7 @@ class GraphWorker:
             return result
         result.poses, result.points = g.window_estimates()
         result.imu_bias = g.biases.get(g.last_keyframe)
+        result.recoveries = g.recoveries
         result.phases.update(g.take_phases())
         result.worker_s = time.perf_counter() - t0
         return result

@@ -70,6 +70,7 @@ class KeyframeGraph:
         self.biases: dict[int, np.ndarray] = {}  # keyframe -> IMU biases [accel m/s^2 (3), gyro rad/s (3)], latest estimate
         self.keyframe_t_s: list[float] = []
         self.phase_s: dict[str, float] = {}  # seconds spent per phase since the last take_phases()
+        self.recoveries = 0  # indeterminate windows eliminated again with the velocities and biases last (:meth:`_start_isam`)
         self._new_isam()
         self._clear_pending()
         k = self.add_keyframe(t0_s, T_world_body_0)
@@ -174,15 +175,16 @@ class KeyframeGraph:
         self.add_factor(gtsam.PriorFactorPose3(X(k), T, gtsam.noiseModel.Gaussian.Covariance(np.asarray(P, dtype=float))))
 
     # --- solving ----------------------------------------------------------------------------
-    def _ordering(self, poses, nav=()) -> gtsam.ISAM2UpdateParams:
+    def _ordering(self, poses, nav=(), nav_last: bool = False) -> gtsam.ISAM2UpdateParams:
         """iSAM2's update parameters with the keyframe poses ``poses`` (and the velocities and biases
-        of the keyframes ``nav``) eliminated after every landmark."""
+        of the keyframes ``nav``) eliminated after every landmark; with ``nav_last``, the velocities
+        and biases after the poses."""
         groups = gtsam.KeyGroupMap()
         for k in poses:
             groups.insert2(X(k), 1)  # landmarks: group 0, first
         for k in nav:
-            groups.insert2(V(k), 1)
-            groups.insert2(B(k), 1)
+            groups.insert2(V(k), 2 if nav_last else 1)
+            groups.insert2(B(k), 2 if nav_last else 1)
         params = gtsam.ISAM2UpdateParams()
         params.constrainedKeys = groups
         return params
@@ -210,8 +212,10 @@ class KeyframeGraph:
                 self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), ordering)
         except RuntimeError as exc:  # gtsam reports an indeterminate system or a missing key this way
             text = one_line(exc)  # with the variable gtsam names
-            self._clear_pending()
-            raise GraphUpdateError(f"the graph update at keyframe {self.last_keyframe} (t = {self.keyframe_t_s[-1]:.3f} s) failed: {text}") from None
+            if not self._nav_t or "Indeterminate" not in text:
+                self._clear_pending()
+                raise GraphUpdateError(f"the graph update at keyframe {self.last_keyframe} (t = {self.keyframe_t_s[-1]:.3f} s) failed: {text}") from None
+            self._recover(text)  # the IMU's stiff factors: the window eliminated again, its velocities and biases last
         t1 = self._timed("solve", t0)
         self._factors.push_back(self._new_factors)
         self._factor_keys.extend(frozenset(self._new_factors.at(i).keys()) for i in range(self._new_factors.size()))
@@ -233,6 +237,54 @@ class KeyframeGraph:
                 self.biases[k] = np.asarray(values.atConstantBias(B(k)).vector(), dtype=float)
         for j in self._point_t if points is None else points:
             self.points[j] = values.atPoint3(L(j))
+
+    def _window_values(self) -> gtsam.Values:
+        """The window's variables at their kept estimates, with the pending new ones."""
+        values = gtsam.Values()
+        for k in self._pose_t:
+            values.insert(X(k), gtsam.Pose3(self.poses[k]))
+        for j in self._point_t:
+            values.insert(L(j), gtsam.Point3(*self.points[j]))
+        for k in self._nav_t:
+            values.insert(V(k), self.velocities[k])
+            values.insert(B(k), gtsam.imuBias.ConstantBias(self.biases[k][:3], self.biases[k][3:]))
+        values.insert(self._new_values)
+        return values
+
+    def _recover(self, failure: str) -> None:
+        """After iSAM2 found the window indeterminate (an update whose re-elimination put a
+        keyframe's velocity and biases, tied to their neighbours with information near 1e11 by the
+        IMU's factors, before the poses), a new iSAM2 over every factor, from the kept estimates, with
+        the velocities and biases eliminated after the poses (docs/imu.md). Raises
+        :class:`GraphUpdateError` when that fails too."""
+        factors = gtsam.NonlinearFactorGraph(self._factors)
+        factors.push_back(self._new_factors)
+        values = self._window_values()
+        self._start_isam(factors, values, failure)
+
+    def _start_isam(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, failure: str | None = None) -> None:
+        """A new iSAM2 over ``factors`` from ``values`` (the window's variable times kept): landmarks,
+        then poses, velocities and biases; if iSAM2 finds that indeterminate (or ``failure`` says the
+        last try did), again with the velocities and biases after the poses (counted in
+        :attr:`recoveries`; from then on, every new iSAM2 of the run is built that way)."""
+        state, kept = (self._pose_t, self._point_t, self._nav_t), (self._factors, self._factor_keys)
+        poses, nav = [*self._pose_t, *self._new_pose_t], [*self._nav_t, *self._new_nav_t]
+        for nav_last in (False, True):
+            if (failure is not None or self.recoveries) and not nav_last:
+                continue  # (once a window was indeterminate, its successors are built the safe way)
+            self._new_isam()
+            (self._pose_t, self._point_t, self._nav_t), (self._factors, self._factor_keys) = state, kept
+            try:
+                self.isam.update(factors, values, self._ordering(poses, nav, nav_last=nav_last))
+            except RuntimeError as exc:
+                failure = one_line(exc)
+                if not self._nav_t and not self._new_nav_t or "Indeterminate" not in failure:
+                    break
+                continue
+            self.recoveries += int(nav_last and failure is not None)
+            return
+        self._clear_pending()
+        raise GraphUpdateError(f"the graph at keyframe {self.last_keyframe} (t = {self.keyframe_t_s[-1]:.3f} s) is indeterminate: {failure}")
 
     @property
     def marginalization_due(self) -> bool:
@@ -285,13 +337,10 @@ class KeyframeGraph:
             kept_keys.append(frozenset(f.keys()))
         for key in old:
             values.erase(key)  # what is left: the window's estimate, the new iSAM2's start
-        pose_t, point_t, nav_t = self._pose_t, self._point_t, self._nav_t
-        self._new_isam()
-        self._pose_t, self._point_t, self._nav_t = pose_t, point_t, nav_t
         try:
-            self.isam.update(kept, values, self._ordering(self._pose_t, self._nav_t))
-        except RuntimeError as exc:
-            raise GraphUpdateError(f"restarting iSAM2 after marginalising the window before t = {t_cut:.3f} s failed: {one_line(exc)}") from None
+            self._start_isam(kept, values)
+        except GraphUpdateError as exc:
+            raise GraphUpdateError(f"restarting iSAM2 after marginalising the window before t = {t_cut:.3f} s failed: {exc}") from None
         self._factors, self._factor_keys = kept, kept_keys
         # (the estimates are read at the next update: the new iSAM2 starts where the window was)
         self._timed("rebuild", t1)
