@@ -17,6 +17,9 @@ demo: setup
 	$(BIN)/dem-graph simulate --scenario demo --out $(OUT)/demo/dataset --overwrite
 	$(BIN)/dem-graph compare $(OUT)/demo/dataset --out $(OUT)/demo/compare
 
+# the tests start many Python processes (the graph's, the CLI's, notebook kernels): let them keep the
+# package's compiled bytecode rather than compile it again each time (0.1-0.3 s a process here)
+test: export PYTHONDONTWRITEBYTECODE =
 test: setup
 	$(BIN)/lint-imports --no-logo
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir $(OUT)/site
