@@ -108,7 +108,6 @@ def test_an_indeterminate_window_is_eliminated_again_with_the_same_estimate(reco
         P_translation = np.asarray(plain.graph.isam.marginalCovariance(X(k)))[3:, 3:]
         d = poses_a[k][:3, :3].T @ (poses_b[k][:3, 3] - poses_a[k][:3, 3])  # in the body frame, as gtsam's covariance
         ratio.append(float(np.sqrt(d @ np.linalg.solve(P_translation, d))))
-    print("largest difference in sigmas", max(ratio))
     assert max(ratio) < 0.1
 
 

@@ -170,6 +170,13 @@ def _salvage_ros1(path: Path, buf: bytes) -> SalvagedBag:
         sec, nsec = struct.unpack("<II", fields["time"])
         bag._messages.append(_Location(sec * 10**9 + nsec, struct.unpack("<I", fields["conn"])[0], chunk, start, length))
 
+    def take(fields: dict[str, bytes], data: bytes, chunk: int | None, start: int, length: int) -> None:
+        """A connection or a message record whose data is ``data[start : start + length]``; others are passed over."""
+        if fields["op"][0] == 0x07:
+            connection(fields, data[start : start + length])
+        elif fields["op"][0] == 0x02:
+            message(fields, chunk, start, length)
+
     whole = len(ROS1_MAGIC)
     for pos, fields, data_start, dlen in _ros1_records(buf, len(ROS1_MAGIC)):
         if fields is None:
@@ -185,10 +192,7 @@ def _salvage_ros1(path: Path, buf: bytes) -> SalvagedBag:
                 for _, f, s, n in _ros1_records(raw, 0):
                     if f is None:
                         break
-                    if f["op"][0] == 0x07:
-                        connection(f, raw[s : s + n])
-                    elif f["op"][0] == 0x02:
-                        message(f, pos, s, n)
+                    take(f, raw, pos, s, n)
                 whole = data_start + dlen
                 continue
             if compression != "none":  # a compressed chunk cut short: nothing in it is whole
@@ -200,20 +204,14 @@ def _salvage_ros1(path: Path, buf: bytes) -> SalvagedBag:
                 if f is None or s + n > len(buf):
                     end = p
                     break
-                if f["op"][0] == 0x07:
-                    connection(f, buf[s : s + n])
-                elif f["op"][0] == 0x02:
-                    message(f, None, s, n)
+                take(f, buf, None, s, n)
                 end = s + n
             whole = end
             break
         if not complete:
             whole = pos
             break
-        if op == 0x07:
-            connection(fields, buf[data_start : data_start + dlen])
-        elif op == 0x02:
-            message(fields, None, data_start, dlen)
+        take(fields, buf, None, data_start, dlen)
         whole = data_start + dlen
     bag.whole_bytes = whole
     return bag

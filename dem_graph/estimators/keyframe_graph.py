@@ -212,7 +212,7 @@ class KeyframeGraph:
                 self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), ordering)
         except RuntimeError as exc:  # gtsam reports an indeterminate system or a missing key this way
             text = one_line(exc)  # with the variable gtsam names
-            if not self._nav_t or "Indeterminate" not in text:
+            if not self._recoverable(text):
                 self._clear_pending()
                 raise GraphUpdateError(f"the graph update at keyframe {self.last_keyframe} (t = {self.keyframe_t_s[-1]:.3f} s) failed: {text}") from None
             self._recover(text)  # the IMU's stiff factors: the window eliminated again, its velocities and biases last
@@ -237,6 +237,10 @@ class KeyframeGraph:
                 self.biases[k] = np.asarray(values.atConstantBias(B(k)).vector(), dtype=float)
         for j in self._point_t if points is None else points:
             self.points[j] = values.atPoint3(L(j))
+
+    def _recoverable(self, failure: str) -> bool:
+        """gtsam found the system indeterminate where the window has the IMU's velocities and biases."""
+        return bool(self._nav_t or self._new_nav_t) and "Indeterminate" in failure
 
     def _window_values(self) -> gtsam.Values:
         """The window's variables at their kept estimates, with the pending new ones."""
@@ -269,19 +273,19 @@ class KeyframeGraph:
         :attr:`recoveries`; from then on, every new iSAM2 of the run is built that way)."""
         state, kept = (self._pose_t, self._point_t, self._nav_t), (self._factors, self._factor_keys)
         poses, nav = [*self._pose_t, *self._new_pose_t], [*self._nav_t, *self._new_nav_t]
-        for nav_last in (False, True):
-            if (failure is not None or self.recoveries) and not nav_last:
-                continue  # (once a window was indeterminate, its successors are built the safe way)
+        # once a window was indeterminate, its successors are built the safe way at once
+        orderings = (True,) if failure is not None or self.recoveries else (False, True)
+        for nav_last in orderings:
             self._new_isam()
             (self._pose_t, self._point_t, self._nav_t), (self._factors, self._factor_keys) = state, kept
             try:
                 self.isam.update(factors, values, self._ordering(poses, nav, nav_last=nav_last))
             except RuntimeError as exc:
                 failure = one_line(exc)
-                if not self._nav_t and not self._new_nav_t or "Indeterminate" not in failure:
-                    break
-                continue
-            self.recoveries += int(nav_last and failure is not None)
+                if self._recoverable(failure):
+                    continue
+                break
+            self.recoveries += int(failure is not None)
             return
         self._clear_pending()
         raise GraphUpdateError(f"the graph at keyframe {self.last_keyframe} (t = {self.keyframe_t_s[-1]:.3f} s) is indeterminate: {failure}")
