@@ -26,8 +26,8 @@ test: setup
 	$(BIN)/python -m pytest -q -n 3 --dist loadfile
 
 bench: setup
-	$(BIN)/dem-graph bench-sim
-	$(BIN)/dem-graph bench
+	$(BIN)/dem-graph research bench-sim
+	$(BIN)/dem-graph research bench
 
 setup: $(VENV)/.installed
 

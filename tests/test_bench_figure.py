@@ -63,14 +63,14 @@ def test_p95_band_spans_median_to_p95(tmp_path):
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--points", "50,x"], "not a list of integers"),
-        (["--points", "0,50"], "1 point or more"),
+        (["--max-points", "50,x"], "not a list of integers"),
+        (["--max-points", "0,50"], "1 point or more"),
         (["--estimators", "gm,ekf"], "unknown estimator ekf"),
         (["--plot", "fig.jpg"], "the plot is a PNG"),
     ],
 )
 def test_bad_bench_options_are_one_line_errors(args, message):
-    result = CliRunner().invoke(main, ["bench", *args])
+    result = CliRunner().invoke(main, ["research", "bench", *args])
     assert result.exit_code == 2
     assert message in result.output and "Traceback" not in result.output
 

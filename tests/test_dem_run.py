@@ -90,7 +90,7 @@ def test_dem_command_makes_the_runs_dem_again_from_its_saved_poses(run_folder, t
 def test_dem_command_local_map_at_a_time_holds_only_earlier_measurements(run_folder, tmp_path, hindsight):
     """The live map as saved at the last saved frame before T, or (--hindsight) one made from the final poses."""
     log, out = run_folder
-    argv = ["--no-progress", "dem", str(out), "--dataset", str(log), "--at", "0.6", "--out", str(tmp_path / "local")]
+    argv = ["--no-progress", "dem", str(out), "--dataset", str(log), "--at-s", "0.6", "--out", str(tmp_path / "local")]
     r = CliRunner().invoke(main, argv + (["--hindsight"] if hindsight else []))
     assert r.exit_code == 0, r.output
     local = read_dem_npz(tmp_path / "local" / "dem.npz")
@@ -108,8 +108,8 @@ def test_dem_command_local_map_at_a_time_holds_only_earlier_measurements(run_fol
     [
         (["dem", "{tmp}/nowhere"], "run folder not found"),
         (["dem", "{tmp}", "--dataset", "{log}"], "not a run folder written by `dem-graph run` (no poses.npz)"),
-        (["dem", "{run}", "--dataset", "{log}", "--at", "99"], "outside the run's poses"),
-        (["dem", "{run}", "--dataset", "{log}", "--at", "99", "--hindsight"], "outside the run's poses"),
+        (["dem", "{run}", "--dataset", "{log}", "--at-s", "99"], "outside the run's poses"),
+        (["dem", "{run}", "--dataset", "{log}", "--at-s", "99", "--hindsight"], "outside the run's poses"),
     ],
 )
 def test_dem_command_bad_input_is_one_line(run_folder, tmp_path, args, message):
@@ -144,7 +144,7 @@ def test_a_run_without_any_laser_return_makes_its_dem_from_the_map_points_alone(
 def test_dem_command_with_a_resolution_below_a_centimetre_is_one_line(run_folder, tmp_path, resolution):
     log, out = run_folder
     r = CliRunner().invoke(
-        main, ["--no-progress", "dem", str(out), "--dataset", str(log), "--resolution", resolution, "--out", str(tmp_path / "d")]
+        main, ["--no-progress", "dem", str(out), "--dataset", str(log), "--resolution-m", resolution, "--out", str(tmp_path / "d")]
     )
     assert r.exit_code == 2 and r.stderr.count("\n") == 1
     assert "invalid DEM resolution: resolution_m: Input should be greater than or equal to 0.01" in r.stderr

@@ -29,7 +29,7 @@ def test_evaluate_gives_the_runs_own_metrics_again(tiny_folder, run_folder, tmp_
     """The trajectory numbers come from the same poses (TUM is exact): equal to metrics.json. The DEM is
     made again from poses.npz and points.ply (variances stored as float32): equal to 1e-6 m."""
     out = tmp_path / "evaluation.json"
-    r = CliRunner().invoke(main, ["--no-progress", "evaluate", str(run_folder), "--truth", str(tiny_folder), "--out", str(out)])
+    r = CliRunner().invoke(main, ["--no-progress", "evaluate", str(run_folder), "--dataset", str(tiny_folder), "--out", str(out)])
     assert r.exit_code == 0, r.output
     assert "ATE (m)" in r.output and "DEM error, laser-swept cells (cm)" in r.output
     own = json.loads((run_folder / "metrics.json").read_text())
@@ -100,7 +100,7 @@ def test_evaluate_bad_input_is_one_line_naming_the_file(tiny_folder, run_folder,
         "no_truth": (run_folder, no_truth_folder),
         "outside_truth": (late, tiny_folder),
     }[case]
-    r = CliRunner().invoke(main, ["--no-progress", "evaluate", str(run), "--truth", str(truth)])
+    r = CliRunner().invoke(main, ["--no-progress", "evaluate", str(run), "--dataset", str(truth)])
     assert r.exit_code == 2
     assert r.stderr.count("\n") == 1 and "Traceback" not in r.output
     assert r.stderr.startswith("dem-graph: error: " + message.format(tmp=tmp_path))

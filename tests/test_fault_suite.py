@@ -177,7 +177,7 @@ def test_frames_repeating_the_one_before_are_marked_predicted_and_warned_once_pe
 # 5. a dataset given for a run folder -----------------------------------------------------------
 
 
-@pytest.mark.parametrize("extra", [[], ["--at", "1.0"]], ids=["global", "live"])
+@pytest.mark.parametrize("extra", [[], ["--at-s", "1.0"]], ids=["global", "live"])
 def test_dem_on_a_dataset_folder_says_it_is_not_a_run_folder(smoke_folder, tmp_path, extra):
     r = _cli("dem", smoke_folder, "--out", tmp_path / "dem", *extra)
     _one_line_error(r, f"{smoke_folder}: not a run folder written by `dem-graph run` (no poses.npz)")
@@ -189,7 +189,7 @@ def test_dem_on_a_dataset_folder_says_it_is_not_a_run_folder(smoke_folder, tmp_p
 def test_a_live_maps_file_that_is_text_is_refused_in_one_line(gm_run, tmp_path):
     run = shutil.copytree(gm_run, tmp_path / "run")
     (run / "live_maps.nc").write_text("not netcdf\n")
-    r = _cli("dem", run, "--at", "0.2", "--out", tmp_path / "dem")
+    r = _cli("dem", run, "--at-s", "0.2", "--out", tmp_path / "dem")
     msg = _one_line_error(r, f"{run / 'live_maps.nc'}: not a NetCDF live-maps file")
     assert "pip" not in msg
 
@@ -199,7 +199,7 @@ def test_a_live_maps_file_that_is_text_is_refused_in_one_line(gm_run, tmp_path):
 
 @pytest.mark.parametrize(
     "estimator, flag",
-    [("ptpm", ["--lag", "3"]), ("gm", ["--graph-process"]), ("gm", ["--keyframe-every", "2"])],
+    [("ptpm", ["--lag-s", "3"]), ("gm", ["--graph-process"]), ("gm", ["--keyframe-every", "2"])],
     ids=["lag_ptpm", "graph_process_gm", "keyframe_every_gm"],
 )
 def test_a_graph_option_with_an_ekf_is_a_usage_error(smoke_folder, tmp_path, monkeypatch, estimator, flag):
@@ -222,10 +222,10 @@ def test_the_estimator_of_the_config_file_counts(smoke_folder, tmp_path, monkeyp
     monkeypatch.setattr(run_module, "run_dataset", reached)
     config = tmp_path / "c.yaml"
     config.write_text("estimator: gm\n")
-    r = _cli("run", smoke_folder, "--config", config, "--lag", "2", "--out", tmp_path / "out")
-    assert r.exit_code == 2 and "--lag: used only by --estimator isam2 or isam2-batch, not by gm" in r.stderr
+    r = _cli("run", smoke_folder, "--config", config, "--lag-s", "2", "--out", tmp_path / "out")
+    assert r.exit_code == 2 and "--lag-s: used only by --estimator isam2 or isam2-batch, not by gm" in r.stderr
     config.write_text("estimator: isam2\n")
-    _one_line_error(_cli("run", smoke_folder, "--config", config, "--lag", "2", "--out", tmp_path / "out"), "the run was reached")
+    _one_line_error(_cli("run", smoke_folder, "--config", config, "--lag-s", "2", "--out", tmp_path / "out"), "the run was reached")
 
 
 # 8. dataset options the format does not read ---------------------------------------------------
@@ -299,5 +299,5 @@ def test_a_beam_field_is_named_as_in_the_rig_file(folder, tmp_path):
 
 @pytest.mark.parametrize("value", ["nan", "inf"])
 def test_a_dem_resolution_that_is_not_a_number_is_said_so(gm_run, tmp_path, value):
-    r = _cli("dem", gm_run, "--resolution", value, "--out", tmp_path / "dem")
+    r = _cli("dem", gm_run, "--resolution-m", value, "--out", tmp_path / "dem")
     _one_line_error(r, "invalid DEM resolution: resolution_m: Input should be a finite number")

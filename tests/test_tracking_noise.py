@@ -148,6 +148,6 @@ def test_track_noise_command_on_a_dataset_without_terrain_says_so(tmp_path):
 
     from dem_graph.cli import main
 
-    result = CliRunner().invoke(main, ["--no-progress", "track-noise", str(tmp_path / "missing")])
+    result = CliRunner().invoke(main, ["--no-progress", "research", "track-noise", str(tmp_path / "missing")])
     assert result.exit_code == 2
     assert "missing" in result.output and "Traceback" not in result.output

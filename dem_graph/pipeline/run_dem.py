@@ -93,7 +93,7 @@ class DemFailure(MetricsModel):
 
 
 class LocalDemMetrics(MetricsModel):
-    """A local map at a time (``dem-graph dem RUN --at T``)."""
+    """A local map at a time (``dem-graph dem RUN --at-s T``)."""
 
     t_s: float
     covered_cells: int

@@ -1,4 +1,4 @@
-"""``dem-graph bench-dem``: how fast the DEM is fused and rebuilt.
+"""``dem-graph research bench-dem``: how fast the DEM is fused and rebuilt.
 
 - fusion throughput: measurements fused per second (cell lookup, median gate, Kalman gate,
   layers), on a dataset's laser returns repeated with jitter up to ``n_points``;

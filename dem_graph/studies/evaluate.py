@@ -1,4 +1,4 @@
-"""The accuracy of one run folder against a dataset's ground truth (``dem-graph evaluate RUN --truth DATASET``).
+"""The accuracy of one run folder against a dataset's ground truth (``dem-graph evaluate RUN --dataset DATASET``).
 
 From the files of the run folder (see :mod:`dem_graph.pipeline.run_folder`):
 

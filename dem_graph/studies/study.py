@@ -2,7 +2,7 @@
 
 For each seed and speed the scenario is simulated once into a dataset folder
 (``data_dir/<scenario>_seed<S>_<V>mps``); every estimator then runs on it with every point budget
-(the cap on live points, with the focus cells and laser share set as ``dem-graph bench`` sets
+(the cap on live points, with the focus cells and laser share set as ``dem-graph research bench`` sets
 them, for the focus area at that speed, which is also the speed the run assumes before it has
 measured one). A row holds the run's ATE (anchored and aligned), drift and time per frame (median and
 p95, tracking included; for ``isam2-batch`` the online pass). No run folder and no DEM is
