@@ -29,7 +29,7 @@ class FocusConfig(StrictModel):
     near_margin_m: float = Field(0.4, ge=0, description="start this far beyond the nearest ground the camera sees, metres")
     min_depth_m: float = Field(1.5, gt=0, description="shortest extent of the focus area along the path, metres")
     max_distance_m: float = Field(15.0, gt=0, description="never look further than this ahead of the body origin, metres")
-    nominal_speed_mps: float = Field(1.5, gt=0, description="speed assumed before the estimator knows it, m/s")
+    nominal_speed_mps: float = Field(1.5, gt=0, description="speed assumed before the estimator knows it, m/s; left at 1.5, a run takes vehicle.speed_mps")
 
 
 def nearest_visible_ground_m(rig: SensorRig) -> float:

@@ -10,6 +10,11 @@ A run's settings come from four layers, each over the one before (:func:`run_con
    differs from the default wins over a dataset's setting;
 4. explicit overrides (:class:`RunOverrides`: the command line's flags).
 
+Then, with a dataset, the settings the vehicle's speed and the camera's frame rate decide
+(``frontend.tracker.max_search_half_size_px``, ``frontend.focus.nominal_speed_mps``) are derived
+from ``vehicle.speed_mps`` and the rig where they still hold their default value
+(:mod:`dem_graph.pipeline.derived`): a value given in any layer wins.
+
 ``dem-graph run`` and :func:`dem_graph.pipeline.run.run_dataset` both build their configuration
 here, so a notebook and the command line run the same thing.
 """
@@ -32,6 +37,7 @@ from dem_graph.estimators.ekf import EkfOptions
 from dem_graph.estimators.isam2 import Isam2Options
 from dem_graph.estimators.settings import SharedSettings
 from dem_graph.evaluation.dem_metrics import LocalErrorConfig
+from dem_graph.pipeline.derived import derive_from_vehicle
 
 log = logging.getLogger(__name__)
 
@@ -68,11 +74,23 @@ class LiveMapConfig(StrictModel):
     odometry_silent_s: float = Field(0.5, gt=0, description="warn when a log with odometry has none for this long (the motion is predicted at constant velocity)")
 
 
+class VehicleConfig(StrictModel):
+    """The vehicle, as far as the settings derived from it need (:mod:`dem_graph.pipeline.derived`)."""
+
+    speed_mps: float = Field(
+        1.5,
+        gt=0,
+        description="the vehicle's usual speed, m/s: with the camera's frame rate it sets frontend.tracker.max_search_half_size_px and "
+        "frontend.focus.nominal_speed_mps where those are left at their defaults (the defaults suit 1.5 m/s at 25 Hz)",
+    )
+
+
 class RunConfig(SharedSettings):
     """A run: which estimator, the settings all estimators share (front end, motion model, false
     matches), each estimator's own options, the DEM and the Fig. 8 measure."""
 
     estimator: EstimatorName = Field("ptpm", description="which estimator")
+    vehicle: VehicleConfig = Field(default_factory=VehicleConfig, description="the vehicle: what the settings its speed decides are derived from")
     ekf: EkfOptions = Field(default_factory=EkfOptions, description="EKF baselines (gm, ptpm)")
     isam2: Isam2Options = Field(default_factory=Isam2Options, description="the graph estimator (isam2, isam2-batch)")
     max_frames: int | None = Field(None, ge=1, description="stop after this many camera frames")
@@ -218,7 +236,9 @@ def configured_estimator(config_file: str | Path | None, overrides: RunOverrides
 
 def run_config(sequence: Sequence | None = None, config_file: str | Path | None = None, overrides: RunOverrides | None = None) -> RunConfig:
     """The run configuration: the defaults, then ``sequence``'s own run settings, then the YAML
-    file ``config_file``, then ``overrides``. A wrong value anywhere is a :class:`ConfigError`."""
+    file ``config_file``, then ``overrides``; then, with a ``sequence``, the settings its rig and
+    ``vehicle.speed_mps`` decide where they are left at their defaults (:func:`derive_from_vehicle`,
+    logged in one line). A wrong value anywhere is a :class:`ConfigError`."""
     data: dict = sequence.run_settings() if sequence is not None else {}
     path = Path(config_file) if config_file is not None else None
     if path is not None:
@@ -234,7 +254,9 @@ def run_config(sequence: Sequence | None = None, config_file: str | Path | None 
             overrides.apply(config)
     except ValidationError as exc:
         raise ConfigError(f"invalid run configuration: {format_validation_error(exc)}", path) from None
+    if sequence is not None:
+        log.info("settings %s", derive_from_vehicle(config, sequence.rig).text())
     return config
 
 
-__all__ = ["DemConfig", "ESTIMATORS", "GRAPH_ESTIMATORS", "configured_estimator", "EstimatorName", "LiveMapConfig", "RunConfig", "RunOverrides", "merge_settings", "read_config_file", "run_config", "without_restated_defaults"]
+__all__ = ["DemConfig", "ESTIMATORS", "GRAPH_ESTIMATORS", "configured_estimator", "EstimatorName", "LiveMapConfig", "RunConfig", "RunOverrides", "VehicleConfig", "merge_settings", "read_config_file", "run_config", "without_restated_defaults"]

@@ -144,9 +144,9 @@ LOW_YIELD_FRACTION = 0.25
 
 # why searches failed, and the setting a vehicle's speed or frame rate makes wrong for that reason
 _ADVICE = {
-    "search_too_large": "the predicted motion between frames is larger than the search allows: frontend.tracker.max_search_half_size_px (a car at 10 Hz: 80), "
-    "and without odometry motion.initial_speed_mps and motion.sigma_*_acc",
-    "out_of_image": "points leave the image before they are found again: frontend.focus (nominal_speed_mps, max_distance_m) for the vehicle's speed",
+    "search_too_large": "the predicted motion between frames is larger than the search allows: vehicle.speed_mps (the search cap is derived from it and the camera's rate) "
+    "or frontend.tracker.max_search_half_size_px, and without odometry motion.initial_speed_mps and motion.sigma_*_acc",
+    "out_of_image": "points leave the image before they are found again: vehicle.speed_mps, or frontend.focus (nominal_speed_mps, max_distance_m)",
     "low_texture": "the ground has little texture at the points chosen: frontend.tracker.min_patch_std_dn and frontend.focus.cell_size_m",
     "low_score": "the templates change too much between frames (a low frame rate, motion blur): the camera's rate, or frontend.tracker.min_score",
     "ambiguous": "repeated texture within the search regions: frontend.tracker.ambiguity_margin, or smaller regions (motion.sigma_*_acc)",
