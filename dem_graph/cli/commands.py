@@ -14,7 +14,6 @@ from dem_graph.cli.root import friendly_errors, main
 
 GRAPH_PROCESS = "isam2-process"  # run's name for isam2 --graph-process, as bench and study name it
 RUN_ESTIMATORS = ["gm", "ptpm", "isam2", GRAPH_PROCESS, "isam2-batch", "odometry"]
-_NEW_SPELLING = {"--lag": "--lag-s"}  # a flag the library names by its old spelling
 
 
 @main.command(short_help="List the built-in simulation scenarios.")
@@ -70,7 +69,7 @@ def _refuse_graph_flags_without_graph(overrides, config_path) -> None:
     """A usage error when a flag only the graph estimators read is given to another estimator."""
     from dem_graph.pipeline.config import GRAPH_ESTIMATORS, configured_estimator
 
-    graph_only = [_NEW_SPELLING.get(flag, flag) for flag in overrides.graph_only()]
+    graph_only = overrides.graph_only()
     if not graph_only:
         return
     chosen = configured_estimator(config_path, overrides)

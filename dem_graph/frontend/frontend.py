@@ -65,7 +65,7 @@ class FrontendConfig(StrictModel):
         0.3,
         gt=0,
         description="standard deviation of a tracked position as the estimators weight it (each frame as if independent), pixels; "
-        "`dem-graph track-noise` measures the value a camera and tracker call for (docs/isam2_design.md)",
+        "`dem-graph research track-noise` measures the value a camera and tracker call for (docs/isam2_design.md)",
     )
 
 

@@ -130,7 +130,7 @@ class RunOverrides:
     def graph_only(self) -> list[str]:
         """The command-line flags of the values set here that only the graph estimators
         (:data:`GRAPH_ESTIMATORS`) read: what ``gm`` and ``ptpm`` would silently ignore."""
-        given = (("--lag", self.lag_s is not None), ("--keyframe-every", self.keyframe_every is not None), ("--graph-process", self.graph_process))
+        given = (("--lag-s", self.lag_s is not None), ("--keyframe-every", self.keyframe_every is not None), ("--graph-process", self.graph_process))
         return [flag for flag, set_ in given if set_]
 
     def apply(self, config: RunConfig) -> RunConfig:
