@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import pickle
 from pathlib import Path
 
+import cv2  # noqa: F401 - (its BLAS loaded before the limit below)
 import pytest
+import scipy.linalg  # noqa: F401 - (its BLAS loaded before the limit below)
+from threadpoolctl import threadpool_limits
 
 from dem_graph.datasets.memory import InMemorySequence
 from dem_graph.progress import set_progress_enabled
@@ -13,11 +18,109 @@ from dem_graph.sim.simulator import SimulatedSequence
 
 set_progress_enabled(False)
 
+# One BLAS thread in each test process. The suite runs three processes on two cores (`make test`), and
+# OpenBLAS's threads, waiting busily for work, took the cores from the other processes: the calibration
+# tests used 2.5 times the CPU with two threads as with one, for the same numbers. A run limits BLAS to
+# its own `blas_threads` (1) while its estimator works; this is for the rest (simulation, calibration).
+_ONE_BLAS_THREAD = threadpool_limits(limits=1, user_api="blas")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _one_blas_thread_in_child_processes():
+    """The processes the tests start (`dem-graph` commands, graph processes, notebook kernels) get the
+    same limit. Set here, in the process that runs the tests (an xdist worker, not the controller that
+    starts the workers: the workers keep the machine's default, which tests/test_run_threads.py reads)."""
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    yield
+
+
+@pytest.fixture(autouse=True)
+def _machine_blas_threads_for_test_run_threads(request):
+    """tests/test_run_threads.py checks that a run sets BLAS to its `blas_threads` and gives the
+    machine's threads back after: it runs with the machine's default, as without the limit above."""
+    if request.node.path.name != "test_run_threads.py":
+        yield
+        return
+    _ONE_BLAS_THREAD.restore_original_limits()
+    try:
+        yield
+    finally:
+        threadpool_limits(limits=1, user_api="blas")
+
+
+# The heavier files and their seconds in `make test` (the sum of a file's --durations there, on the 2-core
+# machine it was timed on). The files run heaviest first: `make test` hands each xdist worker a whole
+# file (--dist loadfile, so that its module fixtures are made once) in the order collected
+# (--no-loadscope-reorder), and a heavy file handed out late kept one worker busy long after the others
+# had finished. Only the order changes: every test runs, and a file's tests keep their order. A file not
+# listed takes less than 8 s; the figures need only be roughly right.
+FILE_COST_S = {
+    "test_graph_worker.py": 105,
+    "test_isam2.py": 60,
+    "test_notebooks.py": 58,
+    "test_ablation.py": 58,
+    "test_study_grid.py": 42,
+    "test_calibration_robust.py": 42,
+    "test_kitti_shared.py": 40,
+    "test_run_robustness.py": 37,
+    "test_live_pipeline.py": 30,
+    "test_imu.py": 28,
+    "test_calibration.py": 28,
+    "test_track_many.py": 26,
+    "test_ekf_imu.py": 21,
+    "test_sim_world.py": 19,
+    "test_gap_bridge.py": 19,
+    "test_cli_run.py": 17,
+    "test_ekf_run.py": 17,
+    "test_sim_sensors.py": 16,
+    "test_run_config.py": 16,
+    "test_calibration_io.py": 14,
+    "test_bag_rig.py": 14,
+    "test_config_yaml.py": 12,
+    "test_kitti.py": 11,
+    "test_own_robot_guide.py": 10,
+    "test_ekf_filter.py": 10,
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    """The heaviest files first (see :data:`FILE_COST_S`); a stable sort, so the rest keep their order."""
+    items.sort(key=lambda item: -FILE_COST_S.get(item.path.name, 0))
+
+
+def _made_once_per_session(tmp_path_factory, name: str, make) -> Path:
+    """The folder ``name`` that ``make(folder)`` fills, made once in the test session: by the first
+    process to ask for it, the others (xdist workers) waiting for it and then reading what it made
+    (the session's simulated logs are inputs only; no test writes into them). It lies in the session's
+    temporary folder, which holds the workers' own (a new one each session)."""
+    try:
+        import fcntl
+    except ImportError:  # (not POSIX: each process makes its own)
+        fcntl = None
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER") and fcntl is not None:
+        base = base.parent
+    folder, done = base / name, base / f"{name}.done"
+    with open(base / f"{name}.lock", "w") as lock:
+        if fcntl is not None:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # (released when the file closes)
+        if not done.exists():
+            make(folder)
+            done.touch()
+    return folder
+
 
 @pytest.fixture(scope="session")
-def smoke_log() -> InMemorySequence:
-    """The `smoke` scenario (4 m, 320x240, odometry), every event in memory."""
-    return InMemorySequence.record(SimulatedSequence.from_config(scenario("smoke", seed=3)))
+def smoke_log(tmp_path_factory) -> InMemorySequence:
+    """The `smoke` scenario (4 m, 320x240, odometry), every event in memory (simulated once per
+    session and handed to each process as a pickle: the same events, bit for bit)."""
+
+    def record(folder: Path) -> None:
+        folder.mkdir()
+        log = InMemorySequence.record(SimulatedSequence.from_config(scenario("smoke", seed=3)))
+        (folder / "log.pickle").write_bytes(pickle.dumps(log, protocol=pickle.HIGHEST_PROTOCOL))
+
+    return pickle.loads((_made_once_per_session(tmp_path_factory, "smoke_log", record) / "log.pickle").read_bytes())
 
 
 @pytest.fixture(scope="session")
@@ -25,9 +128,10 @@ def tiny_folder(tmp_path_factory):
     """The `smoke` scenario cut to 0.5 m (8 camera frames), written as a dataset folder with ground truth."""
     from dem_graph.sim.pipeline import simulate
 
-    out = tmp_path_factory.mktemp("tiny") / "smoke"
-    simulate(scenario("smoke", seed=5, length_m=0.5), out, preview=False)
-    return out
+    def write(folder: Path) -> None:
+        simulate(scenario("smoke", seed=5, length_m=0.5), folder / "smoke", preview=False)
+
+    return _made_once_per_session(tmp_path_factory, "tiny", write) / "smoke"
 
 
 @pytest.fixture(scope="session")
@@ -35,9 +139,10 @@ def smoke_folder(tmp_path_factory):
     """The `smoke` scenario (4 m, 2.5 s) as a dataset folder, as `dem-graph simulate` writes it."""
     from dem_graph.sim.pipeline import simulate
 
-    out = tmp_path_factory.mktemp("smoke_folder") / "smoke"
-    simulate(scenario("smoke", seed=5), out, preview=False)
-    return out
+    def write(folder: Path) -> None:
+        simulate(scenario("smoke", seed=5), folder / "smoke", preview=False)
+
+    return _made_once_per_session(tmp_path_factory, "smoke_folder", write) / "smoke"
 
 
 SHARED_KITTI = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti_odometry"

@@ -51,22 +51,31 @@ class OracleTracker:
         self.camera = log.rig.camera_model
         self.T_body_cam = log.rig.T_body_cam
         self.truth: dict[int, np.ndarray] = {}
+        self._T_world_cam: dict[float, np.ndarray] = {}
+
+    def T_world_cam(self, t_s: float) -> np.ndarray:
+        """The true camera pose at ``t_s`` (interpolated once per time: a frame asks for it for every point)."""
+        if t_s not in self._T_world_cam:
+            self._T_world_cam[t_s] = self.gt.at(np.array([t_s]))[0] @ self.T_body_cam
+        return self._T_world_cam[t_s]
 
     def __call__(self, frontend, image, point_ids, templates, uv_pred, S_px2=None, half_size_px=None, t_s=0.0, T_world_cam=None):
         """In place of ``FrontEnd.track_many``: every point found at its true pixel."""
-        uv_all = np.zeros((len(point_ids), 2))
-        for k, point_id in enumerate(np.asarray(point_ids).tolist()):
+        ids = np.asarray(point_ids).tolist()
+        for point_id in ids:
             track = frontend.tracks[point_id]
             if point_id not in self.truth:
-                T_wc = self.gt.at(np.array([track.created_t_s]))[0] @ self.T_body_cam
+                T_wc = self.T_world_cam(track.created_t_s)
                 d = T_wc[:3, :3] @ self.camera.bearings_from_pixels(np.asarray(track.patch.center_px, dtype=float)[None])[0]
                 o = T_wc[:3, 3]
                 self.truth[point_id] = o - d * o[2] / d[2]
-            T_cam_world = invert(self.gt.at(np.array([t_s]))[0] @ self.T_body_cam)
-            uv_all[k] = self.camera.project(transform_points(T_cam_world, self.truth[point_id][None]))[0][0]
             track.misses = 0
             track.n_tracked += 1
-        n = len(uv_all)
+        n = len(ids)
+        uv_all = np.zeros((n, 2))
+        if n:
+            T_cam_world = invert(self.T_world_cam(t_s))
+            uv_all[:] = self.camera.project(transform_points(T_cam_world, np.array([self.truth[p] for p in ids])))[0]
         return TrackBatch(np.zeros(n, dtype=np.int8), uv_all, np.ones(n), np.full(n, np.nan), np.full((n, 2), 3, dtype=np.int64))
 
 
@@ -223,8 +232,29 @@ def test_laser_gap(smoke_log):
 # --- batch -------------------------------------------------------------------------------------
 
 
-def test_batch_smooths_every_observation(smoke_log):
-    run = _run(smoke_log, "isam2-batch")
+@pytest.fixture(scope="module")
+def batch_run(smoke_log):
+    """isam2-batch on `smoke`, and the arguments its batch smoothing was called with (the real
+    smoothing runs: the run is the one without the spy)."""
+    from dem_graph.estimators import batch, batch_log
+
+    seen = {}
+
+    def keep_inputs(*args, **kwargs):
+        seen.update(args=args, kwargs=kwargs)
+        return batch.smooth_batch(*args, **kwargs)
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(batch_log, "smooth_batch", keep_inputs)
+    try:
+        run = _run(smoke_log, "isam2-batch")
+    finally:
+        mp.undo()
+    return run, seen
+
+
+def test_batch_smooths_every_observation(batch_run):
+    run, _ = batch_run
     m = run.metrics
     assert run.error is None and m.frames == 65
     ev = m.events
@@ -239,7 +269,7 @@ def test_batch_smooths_every_observation(smoke_log):
     assert m.trajectory.ate_rmse_m < 0.03
 
 
-def test_batch_fits_the_landmarks_to_the_poses_before_smoothing(smoke_log, monkeypatch):
+def test_batch_fits_the_landmarks_to_the_poses_before_smoothing(smoke_log, batch_run):
     """The online pass's landmarks need not agree with its final poses: each is the graph's estimate
     from when it was last updated. Started with every landmark 1 m off (random directions), the
     first pass (the landmarks fitted with the poses held) removes most of the start's error, and
@@ -247,16 +277,9 @@ def test_batch_fits_the_landmarks_to_the_poses_before_smoothing(smoke_log, monke
     pass (measured: the same 6.7 mm ATE); on `paper` seed 6 (100 m, 244 000 factors) it did not:
     it stopped after one iteration at an error of 4.2e6, 3 m low at the end, and with the first
     pass it reaches 3.0e4, 0.38 m high (docs/isam2_design.md)."""
-    from dem_graph.estimators import batch, batch_log
+    from dem_graph.estimators import batch
 
-    seen = {}
-
-    def keep_inputs(*args, **kwargs):
-        seen.update(args=args, kwargs=kwargs)
-        return batch.smooth_batch(*args, **kwargs)
-
-    monkeypatch.setattr(batch_log, "smooth_batch", keep_inputs)
-    run = _run(smoke_log, "isam2-batch")
+    run, seen = batch_run
     assert run.error is None
     mlog, rig, T0, P0, poses, points, *rest = seen["args"]
     rng = np.random.default_rng(0)

@@ -117,7 +117,15 @@ def test_same_seed_same_data_and_different_seed_differs():
     a = SimulatedSequence.from_config(scenario("smoke", seed=7, length_m=1.0))
     b = SimulatedSequence.from_config(scenario("smoke", seed=7, length_m=1.0))
     c = SimulatedSequence.from_config(scenario("smoke", seed=8, length_m=1.0))
-    ea, eb, ec = list(a.events()), list(b.events()), list(c.events())
+    ea, eb = list(a.events()), list(b.events())
+    # of the other seed's log only its start is compared (its first image, its first 100 IMU samples)
+    ec, n_frames, n_imu = [], 0, 0
+    for e in c.events():
+        ec.append(e)
+        n_frames += isinstance(e, CameraFrame)
+        n_imu += isinstance(e, ImuSample)
+        if n_frames and n_imu >= 100:
+            break
     assert len(ea) == len(eb)
     for x, y in zip(ea, eb):
         assert type(x) is type(y) and x.t_s == y.t_s

@@ -72,7 +72,19 @@ def point_plane_residuals(T_cam_laser: np.ndarray, view: PlaneView) -> np.ndarra
 def point_plane_jacobian(T_cam_laser: np.ndarray, view: PlaneView) -> np.ndarray:
     """(M,6) derivative of :func:`point_plane_residuals` by the right perturbation ``xi = [omega, v]``."""
     a = T_cam_laser[:3, :3].T @ view.n_cam
-    return np.hstack([np.cross(view.points_laser, a), np.broadcast_to(a, view.points_laser.shape)])
+    return _cross_and_normal(view.points_laser, a)
+
+
+def _cross_and_normal(points: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """``[p x a, a]`` for each point ``p`` (rows of ``points``, (..., M, 3)), ``a`` (..., 3): the products and
+    differences of ``np.cross`` in its order, without its overhead (the refinements call this thousands of times)."""
+    a = a[..., None, :]
+    J = np.empty(points.shape[:-1] + (6,))
+    J[..., 0] = points[..., 1] * a[..., 2] - points[..., 2] * a[..., 1]
+    J[..., 1] = points[..., 2] * a[..., 0] - points[..., 0] * a[..., 2]
+    J[..., 2] = points[..., 0] * a[..., 1] - points[..., 1] * a[..., 0]
+    J[..., 3:] = a
+    return J
 
 
 def normal_spread(normals_cam: np.ndarray) -> float:
@@ -143,6 +155,62 @@ def _whitened(T: np.ndarray, views: list[PlaneView], W: list, with_jacobian: boo
     return res, jac
 
 
+class _PackedViews:
+    """The views' points in one zero-padded array (view, point, xyz), so that a residual evaluation of
+    :func:`refine` whitens every view with a few numpy calls rather than a dozen per view. The arithmetic is
+    that of :meth:`PlaneView.with_dark_bias`, :func:`_whiteners` and :func:`_whitened` view by view, to the
+    bit: element by element, or in products whose sums do not run over the padding (the QR and ``U^T y``
+    take each view's own rows)."""
+
+    def __init__(self, views: list[PlaneView]):
+        self.sizes = sizes = [len(v.points_laser) for v in views]
+        self.mask = np.arange(max(sizes))[None, :] < np.array(sizes)[:, None]  # (V, M): a point, not padding
+        self.points = np.zeros(self.mask.shape + (3,))
+        self.points[self.mask] = np.concatenate([v.points_laser for v in views])
+        self.dark = np.zeros(self.mask.shape)  # views without dark returns keep their points (a factor of exactly one)
+        for k, v in enumerate(views):
+            if v.dark is not None and np.any(v.dark):
+                self.dark[k, : sizes[k]] = v.dark
+        self.ranges = np.linalg.norm(self.points, axis=2)
+        self.n_cam = np.array([v.n_cam for v in views])[:, :, None]  # (V, 3, 1)
+        self.d_m = np.array([v.d_m for v in views], dtype=float)[:, None]
+        self.plane_covariance = np.array([v.plane_covariance for v in views])
+
+    def residuals(self, T: np.ndarray) -> np.ndarray:
+        """:func:`point_plane_residuals` of every view, concatenated."""
+        return (((self.points @ T[:3, :3].T + T[:3, 3]) @ self.n_cam)[:, :, 0] - self.d_m)[self.mask]
+
+    def jacobian(self, T: np.ndarray) -> np.ndarray:
+        """:func:`point_plane_jacobian` of every view, stacked."""
+        a = np.array([T[:3, :3].T @ n[:, 0] for n in self.n_cam])  # (view by view: a sum of three products, as there)
+        return _cross_and_normal(self.points, a)[self.mask]
+
+    def whitened_residuals(self, T: np.ndarray, range_sigma_m: float, dark_bias_m: float = 0.0) -> np.ndarray:
+        """``_whitened(T, moved, _whiteners(T, moved, range_sigma_m), False)[0]`` with ``moved`` the views
+        with their dark returns moved by ``dark_bias_m``."""
+        P = self.points
+        if dark_bias_m != 0.0:
+            P = P * (1.0 - dark_bias_m * self.dark / np.maximum(self.ranges, 1e-9))[:, :, None]
+        R = T[:3, :3]
+        X = P @ R.T + T[:3, 3]
+        ranges = np.linalg.norm(P, axis=2)
+        beams = (P / np.maximum(ranges, 1e-9)[:, :, None]) @ R.T
+        sqrt_d = np.sqrt((range_sigma_m * (beams @ self.n_cam)[:, :, 0]) ** 2 + 1e-12)
+        B = np.concatenate([X, -np.ones(X.shape[:2] + (1,))], axis=2) / sqrt_d[:, :, None]
+        # the QR view by view: the reflections' norms are sums whose rounding depends on their length
+        Q, Rq = np.zeros_like(B), np.empty((len(B), 4, 4))
+        for k, m in enumerate(self.sizes):
+            Q[k, :m], Rq[k] = np.linalg.qr(B[k, :m])
+        lam, V = np.linalg.eigh(Rq @ self.plane_covariance @ Rq.transpose(0, 2, 1))
+        U = Q @ V
+        f = 1.0 / np.sqrt(1.0 + np.maximum(lam, 0.0)) - 1.0
+        y = ((X @ self.n_cam)[:, :, 0] - self.d_m) / sqrt_d
+        # U^T y view by view: a dot product's rounding depends on its length, and the padding's zeros would change it
+        Uty = np.array([U[k, :m].T @ y[k, :m] for k, m in enumerate(self.sizes)])
+        w = y + (U @ (f * Uty)[:, :, None])[:, :, 0]
+        return w[self.mask]
+
+
 MIN_DARK_RETURNS = 20  # fewer returns on dark squares than this: their range bias is not estimated
 
 
@@ -161,8 +229,14 @@ def refine(
     n_par = 7 if with_bias else 6
     bias = 0.0
 
+    # (the views as one array: the evaluations below are most of a calibration's time; fewer than four
+    # points in a view would make its QR's R short, and such views take the view-by-view path)
+    packed = _PackedViews(views) if views and min(len(v.points_laser) for v in views) >= 4 else None
+
     def residuals(x, T0):
         T1 = retract(T0, x[:6])
+        if packed is not None:
+            return packed.whitened_residuals(T1, range_sigma_m, x[6] if with_bias else 0.0)
         moved = [v.with_dark_bias(x[6]) for v in views] if with_bias else views
         return _whitened(T1, moved, _whiteners(T1, moved, range_sigma_m), False)[0]
 
@@ -222,13 +296,20 @@ def estimate_range_sigma(
 def refine_unweighted(views: list[PlaneView], T_initial: np.ndarray, scale_m: float, max_evaluations: int = 30) -> np.ndarray:
     """A quick robust fit of plain point-to-plane distances (Huber, ``scale_m``): for hypotheses, not for the answer."""
 
+    packed = _PackedViews(views)  # (the views as one array: as the view-by-view functions, to the bit)
+    last: list = [None, None]  # the jacobian is asked for at the point whose residuals were just evaluated
+
+    def pose(xi):
+        key = xi.tobytes()
+        if last[0] != key:
+            last[:] = key, retract(T_initial, xi)
+        return last[1]
+
     def residuals(xi):
-        T = retract(T_initial, xi)
-        return np.concatenate([point_plane_residuals(T, v) for v in views])
+        return packed.residuals(pose(xi))
 
     def jacobian(xi):
-        T = retract(T_initial, xi)
-        return np.vstack([point_plane_jacobian(T, v) for v in views])
+        return packed.jacobian(pose(xi))
 
     fit = least_squares(residuals, np.zeros(6), jac=jacobian, loss="huber", f_scale=scale_m, max_nfev=max_evaluations)
     return retract(T_initial, fit.x)
