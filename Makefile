@@ -3,9 +3,9 @@
 #               (one table, run folders and a report under out/demo/compare/)
 #   make test   set up, check the import layers (pyproject.toml), build the docs site (mkdocs build --strict:
 #               a broken link or a stale API reference fails), then run the test suite (three workers,
-#               pytest-xdist: on 2 cores the suite took 7 min 40 s with 3 or 4, 8 min 31 s with 2, as tests
-#               wait on processes and the wall clock; a test file's tests stay on one worker, so its fixtures
-#               are made once; tests/test_docs_snippets.py runs the README's and the docs' Python snippets)
+#               pytest-xdist, a test file's tests on one worker so that its fixtures are made once, the
+#               heaviest files first (tests/conftest.py); docs/benchmarks.md has the suite's time;
+#               tests/test_docs_snippets.py runs the README's and the docs' Python snippets)
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
