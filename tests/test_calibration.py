@@ -56,6 +56,29 @@ def test_jacobian_matches_numerical_derivative():
     np.testing.assert_allclose(J, numeric, atol=1e-8)
 
 
+def test_the_views_packed_in_one_array_give_the_view_by_view_numbers_to_the_bit():
+    """The refinements evaluate every view at once (solve._PackedViews); the covariance and views of
+    fewer than four points go view by view. Both must give the same numbers, bit for bit: views of
+    different sizes (the padding), dark returns moved by a bias, and none."""
+    from dem_graph.calibration.solve import _PackedViews, _whitened, _whiteners
+
+    rng = np.random.default_rng(4)
+    T = retract(simulate_calibration(0, 3).T_cam_laser, 0.05 * rng.standard_normal(6))
+    views = []
+    for m in (7, 20, 13):
+        points = np.column_stack([rng.uniform(0.5, 2.0, m), rng.uniform(-0.5, 0.5, m), np.zeros(m)])
+        n = rng.standard_normal(3) + [0.0, 0.0, 3.0]
+        A = rng.standard_normal((4, 4)) * 1e-3
+        views.append(PlaneView(n / np.linalg.norm(n), rng.uniform(1.0, 2.0), A @ A.T, points, rng.uniform(0.0, 1.0, m)))
+    packed = _PackedViews(views)
+    assert np.array_equal(packed.residuals(T), np.concatenate([point_plane_residuals(T, v) for v in views]))
+    assert np.array_equal(packed.jacobian(T), np.vstack([point_plane_jacobian(T, v) for v in views]))
+    for bias_m in (0.0, 0.004):
+        moved = [v.with_dark_bias(bias_m) for v in views]
+        by_view = _whitened(T, moved, _whiteners(T, moved, 0.01), False)[0]
+        assert np.array_equal(packed.whitened_residuals(T, 0.01, bias_m), by_view)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_refinement_meets_the_acceptance_with_1cm_ranges(seed):
     # 0.3 px corners, 1 cm ranges, 15 views: rotation under 0.3 degrees, translation under 1 cm at every seed

@@ -193,7 +193,7 @@ class _PackedViews:
             P = P * (1.0 - dark_bias_m * self.dark / np.maximum(self.ranges, 1e-9))[:, :, None]
         R = T[:3, :3]
         X = P @ R.T + T[:3, 3]
-        ranges = np.linalg.norm(P, axis=2)
+        ranges = self.ranges if P is self.points else np.linalg.norm(P, axis=2)
         beams = (P / np.maximum(ranges, 1e-9)[:, :, None]) @ R.T
         sqrt_d = np.sqrt((range_sigma_m * (beams @ self.n_cam)[:, :, 0]) ** 2 + 1e-12)
         B = np.concatenate([X, -np.ones(X.shape[:2] + (1,))], axis=2) / sqrt_d[:, :, None]

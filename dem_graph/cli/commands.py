@@ -12,7 +12,7 @@ from dem_graph.cli.options import option, realtime_option
 from dem_graph.cli.out_folder import name_of, out_folder, out_option, through_links
 from dem_graph.cli.root import friendly_errors, main
 
-GRAPH_PROCESS = "isam2-process"  # run's name for isam2 --graph-process, as bench and study name it
+GRAPH_PROCESS = "isam2-process"  # pipeline.config.GRAPH_PROCESS, spelled out: the library is imported only when a command runs
 RUN_ESTIMATORS = ["gm", "ptpm", "isam2", GRAPH_PROCESS, "isam2-batch", "odometry"]
 
 
@@ -58,10 +58,11 @@ def simulate(scenario_name, seed, length_m, speed_mps, no_odometry, no_imu, out_
 
 def _run_overrides(estimator, graph_process: bool, **values):
     """The :class:`RunOverrides` of ``run``'s flags, ``isam2-process`` read as ``isam2 --graph-process``."""
-    from dem_graph.pipeline.config import RunOverrides
+    from dem_graph.pipeline.config import RunOverrides, split_graph_process
 
-    if estimator == GRAPH_PROCESS:
-        estimator, graph_process = "isam2", True
+    if estimator is not None:
+        estimator, in_process = split_graph_process(estimator)
+        graph_process = graph_process or in_process
     return RunOverrides(estimator=estimator, graph_process=graph_process, **values)
 
 

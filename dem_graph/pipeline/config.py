@@ -111,6 +111,15 @@ class RunConfig(SharedSettings):
 GRAPH_ESTIMATORS: tuple[str, ...] = ("isam2", "isam2-batch")
 """The estimators that read the ``isam2`` section (the EKF baselines ignore it)."""
 
+GRAPH_PROCESS = "isam2-process"
+"""The name (``run``, the bench, studies) of ``isam2`` with ``isam2.graph_process``: its graph in a second process."""
+
+
+def split_graph_process(name: str) -> tuple[str, bool]:
+    """``(estimator, graph_process)`` of an estimator's name: :data:`GRAPH_PROCESS` is ``("isam2", True)``,
+    any other name ``(name, False)``."""
+    return ("isam2", True) if name == GRAPH_PROCESS else (name, False)
+
 
 @dataclass
 class RunOverrides:
@@ -259,4 +268,4 @@ def run_config(sequence: Sequence | None = None, config_file: str | Path | None 
     return config
 
 
-__all__ = ["DemConfig", "ESTIMATORS", "GRAPH_ESTIMATORS", "configured_estimator", "EstimatorName", "LiveMapConfig", "RunConfig", "RunOverrides", "VehicleConfig", "merge_settings", "read_config_file", "run_config", "without_restated_defaults"]
+__all__ = ["DemConfig", "ESTIMATORS", "GRAPH_ESTIMATORS", "configured_estimator", "EstimatorName", "GRAPH_PROCESS", "LiveMapConfig", "RunConfig", "RunOverrides", "VehicleConfig", "merge_settings", "read_config_file", "run_config", "split_graph_process", "without_restated_defaults"]

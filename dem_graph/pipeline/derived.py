@@ -63,9 +63,11 @@ def nearest_ground_motion_px(rig: SensorRig, step_m: float) -> float:
     """How far (pixels) the flat ground straight ahead at the nearest distance the camera sees moves
     in the image when the body drives ``step_m`` forward; nan when the camera sees no ground."""
     x_m = nearest_visible_ground_m(rig)
+    if not x_m > 0.0:
+        return math.nan
     ground_body = np.array([[x_m, 0.0, 0.0], [x_m - step_m, 0.0, 0.0]])  # the point, before and after the step
     uv_px, in_front = rig.camera_model.project(transform_points(invert(rig.T_body_cam), ground_body))
-    if x_m <= 0.0 or not in_front.all():
+    if not in_front.all():
         return math.nan
     return float(np.linalg.norm(uv_px[1] - uv_px[0]))
 

@@ -18,7 +18,7 @@ from dem_graph.datasets.events import CameraFrame
 from dem_graph.datasets.memory import InMemorySequence
 from dem_graph.evaluation.timing import TimingStats, format_table, machine_description
 from dem_graph.frontend.focus import FocusArea
-from dem_graph.pipeline.config import RunConfig
+from dem_graph.pipeline.config import RunConfig, split_graph_process
 from dem_graph.pipeline.run import run_estimator
 from dem_graph.progress import progress
 from dem_graph.sim.scenarios import scenario
@@ -103,8 +103,9 @@ def config_for_points(estimator: str, max_points: int, rig, speed_mps: float | N
     them at most from the laser, and about as many focus cells as points in the focus area at
     ``speed_mps`` (default: the focus settings' nominal speed, which it also becomes), so that the
     cap is what limits. ``isam2-process``: isam2 with its graph in a second process."""
-    config = RunConfig(estimator="isam2" if estimator == "isam2-process" else estimator)
-    config.isam2.graph_process = estimator == "isam2-process"
+    name, graph_process = split_graph_process(estimator)
+    config = RunConfig(estimator=name)
+    config.isam2.graph_process = graph_process
     fe = config.frontend
     fe.max_points = max_points
     fe.max_laser_points = int(round(0.7 * max_points))

@@ -21,7 +21,7 @@ import numpy as np
 from dem_graph.datasets.folder import FolderSequence
 from dem_graph.errors import DatasetError, DemGraphError, one_line
 from dem_graph.evaluation.timing import format_table
-from dem_graph.pipeline.config import ESTIMATORS, RunConfig, run_config
+from dem_graph.pipeline.config import ESTIMATORS, GRAPH_PROCESS, RunConfig, run_config, split_graph_process
 from dem_graph.pipeline.run import run_estimator
 from dem_graph.sim.pipeline import simulate
 from dem_graph.sim.scenarios import scenario
@@ -143,7 +143,6 @@ class StudyResult:
         return write_rows_csv(path, StudyRow, self.rows)
 
 
-GRAPH_PROCESS = "isam2-process"  # a study's name for isam2 with its graph in a second process
 def parse_study_estimators(text: str) -> tuple[str, ...]:
     """The study's estimators from ``"gm,isam2"``: those ``compare`` knows, and ``isam2-process``;
     each may end in ``-noimu`` (the same estimator ignoring the dataset's IMU)."""
@@ -160,8 +159,9 @@ def _study_config(sequence, name: str, speed_mps: float, max_points: int | None)
     if max_points is not None:
         config = config_for_points(base, max_points, sequence.rig, speed_mps)
     else:
-        config = run_config(sequence).model_copy(update={"estimator": "isam2" if base == GRAPH_PROCESS else base}, deep=True)
-        config.isam2.graph_process = base == GRAPH_PROCESS
+        estimator, graph_process = split_graph_process(base)
+        config = run_config(sequence).model_copy(update={"estimator": estimator}, deep=True)
+        config.isam2.graph_process = graph_process
     config.motion.use_imu = base == name
     return config
 
