@@ -125,6 +125,28 @@ class GraphResult:
     worker_s: float = 0.0  # the graph's time on these messages, seconds
     phases: dict[str, float] = field(default_factory=dict)  # seconds per phase: factors, solve, estimate, marginal; cut, rebuild (the window's, since the last result)
 
+    # Sent between processes with each window's estimates as one array per dict: pickling a dict of
+    # some 500 small arrays cost the graph 0.9 ms to write and the estimator 0.6 ms to read per result
+    # (packed: 0.2 and 0.3 ms; the same numbers arrive)
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "poses": _packed(self.poses), "points": _packed(self.points)}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state, poses=_unpacked(state["poses"]), points=_unpacked(state["points"]))
+
+
+def _packed(arrays: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:
+    """Keys and stacked values of a dict of equal-shaped arrays."""
+    keys = np.fromiter(arrays.keys(), dtype=np.int64, count=len(arrays))
+    return keys, (np.stack(list(arrays.values())) if arrays else None)
+
+
+def _unpacked(packed: tuple[np.ndarray, np.ndarray | None]) -> dict[int, np.ndarray]:
+    """:func:`_packed`'s dict again, each value an array of its own (the estimator keeps some for the
+    whole run: a row of the packed array would keep all of it)."""
+    keys, values = packed
+    return {} if values is None else dict(zip(keys.tolist(), map(np.copy, values)))
+
 
 class GraphWorker:
     """Turns messages into factors and updates a :class:`KeyframeGraph` with them."""
