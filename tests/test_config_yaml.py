@@ -15,6 +15,7 @@ from dem_graph.cli import main
 from dem_graph.geometry.rig import load_rig
 from dem_graph.pipeline.config import RunConfig, run_config, without_restated_defaults
 from dem_graph.pipeline.config_yaml import config_yaml
+from dem_graph.pipeline.derived import derived_search_half_size_px
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
@@ -68,14 +69,15 @@ def test_on_kitti_a_file_restating_the_defaults_leaves_the_datasets_settings(tmp
     with caplog.at_level("INFO"):
         configured = run_config(sequence, tmp_path / "c.yaml")
     assert configured.model_dump(mode="json") == run_config(sequence).model_dump(mode="json")
-    assert configured.frontend.tracker.max_search_half_size_px == 80  # KITTI's, not the default's 40
+    # derived from KITTI's vehicle.speed_mps and its camera (129 px on sequence 04), not the default's 40
+    assert configured.frontend.tracker.max_search_half_size_px == derived_search_half_size_px(sequence.rig, 12.0, sequence.rig.camera.rate_hz) != 40
     assert any("motion.initial_speed_from_dataset" in r.getMessage() and "12 values restate a default" in r.getMessage() for r in caplog.records)
 
 
 @pytest.mark.shared_data
 def test_on_kitti_the_printed_configuration_gives_the_same_trajectory_to_the_byte(tmp_path, kitti_sample):
     """`dem-graph config > c.yaml; dem-graph run KITTI --config c.yaml` runs what `dem-graph run KITTI`
-    runs: KITTI's own settings (80 px searches, the Velodyne's starting speed, ...) stay under the
+    runs: KITTI's own settings (a car's speed, the Velodyne's starting speed, ...) stay under the
     file's restated defaults, and the settings derived from vehicle.speed_mps come out the same."""
     runner = CliRunner()
     (tmp_path / "c.yaml").write_text(runner.invoke(main, ["config"]).output)
@@ -116,11 +118,11 @@ def test_the_examples_validate():
     # the search cap is left to the derivation from the speed (test_derived_settings.py), and the slow robot's focus speed too
     assert car.frontend.tracker == default.frontend.tracker.model_copy(update={"min_patch_std_dn": 2.0})
     assert slow.frontend.focus.nominal_speed_mps == default.frontend.focus.nominal_speed_mps and car.frontend.focus.nominal_speed_mps == 4.0
-    # the car's settings are KITTI's own but for these (docs/real_data.md, "One car example on both drives"): the speed
-    # instead of the 80 px cap, a steadier speed, a near start, and no starting speed read from KITTI's Velodyne
+    # the car's settings are KITTI's own but for these (docs/real_data.md, "One car example on both drives"): a
+    # steadier speed, a near start, and no starting speed read from KITTI's Velodyne
     kitti = _flat(yaml.safe_load((Path(__file__).resolve().parent.parent / "dem_graph" / "datasets" / "settings" / "kitti.yaml").read_text()))
     example = _flat(yaml.safe_load((EXAMPLES / "car_10hz.yaml").read_text()))
-    assert sorted(set(example) - set(kitti)) == ["frontend.focus.nominal_speed_mps", "vehicle.speed_mps"]
-    assert sorted(set(kitti) - set(example)) == ["frontend.tracker.max_search_half_size_px", "motion.initial_speed_from_dataset"]
+    assert sorted(set(example) - set(kitti)) == ["frontend.focus.nominal_speed_mps"]
+    assert sorted(set(kitti) - set(example)) == ["motion.initial_speed_from_dataset"]
     assert {k for k in kitti.keys() & example.keys() if kitti[k] != example[k]} == {"motion.sigma_linear_acc_mps2"}
     assert example["motion.sigma_linear_acc_mps2"] == 0.5 < kitti["motion.sigma_linear_acc_mps2"]

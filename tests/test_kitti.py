@@ -14,8 +14,10 @@ from dem_graph.datasets.kitti import KittiOdometrySequence, KittiRawSequence, op
 from dem_graph.datasets.open import detect_format
 from dem_graph.datasets.velodyne import RingLaser, elevation_deg, read_velodyne_bin, reference_surface, split_rings
 from dem_graph.errors import DatasetError
+from dem_graph.geometry.rig import default_rig
 from dem_graph.geometry.se3 import invert, make_pose, rotation_from_rpy, transform_points
 from dem_graph.pipeline import RunConfig, RunOverrides, run_config
+from dem_graph.pipeline.derived import REFERENCE_RATE_HZ, REFERENCE_SPEED_MPS, derived_search_half_size_px, nearest_ground_motion_px
 
 LIDAR_H = 1.73
 ELEVATIONS_DEG = np.concatenate([np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.33, 32)])
@@ -98,15 +100,15 @@ def _calib_line(key, M):
 P0 = np.array([[700.0, 0.0, 300.0, 0.0], [0.0, 700.0, 90.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
 
 
-def make_odometry_layout(root, n=3, images=None, times=None, calib=True):
+def make_odometry_layout(root, n=3, images=None, times=None, calib=True, size_px=(600, 180), P=P0):
     seq = root / "sequences" / "07"
     rng = np.random.default_rng(3)
     for i in range(n if images is None else images):
-        _write_png(seq / "image_0" / f"{i:06d}.png", rng.integers(0, 256, (180, 600), dtype=np.uint8))
+        _write_png(seq / "image_0" / f"{i:06d}.png", rng.integers(0, 256, size_px[::-1], dtype=np.uint8))
     for i in range(n):
         _scan_file(seq / "velodyne" / f"{i:06d}.bin")
     if calib:
-        (seq / "calib.txt").write_text("\n".join([_calib_line("P0", P0), _calib_line("Tr", T_CAM_LIDAR[:3])]) + "\n")
+        (seq / "calib.txt").write_text("\n".join([_calib_line("P0", P), _calib_line("Tr", T_CAM_LIDAR[:3])]) + "\n")
     (seq / "times.txt").write_text("\n".join(f"{0.1 * i:.6e}" for i in range(n if times is None else times)) + "\n")
     # camera 0 drives 1 m per frame along its optical axis (forward)
     (root / "poses").mkdir(parents=True, exist_ok=True)
@@ -410,14 +412,37 @@ def test_the_dataset_speed_replaces_the_prior_only_when_asked():
     assert with_dataset_speed(SimpleNamespace(has_odometry=True, initial_speed_mps=12.5), config).motion.initial_speed_mps == 0.0
 
 
+# sequence 04's camera: 1226x370 px, P0's focal length and centre
+SIZE_04_PX = (1226, 370)
+P0_04 = np.array([[707.0912, 0.0, 601.8873, 0.0], [0.0, 707.0912, 183.1104, 0.0], [0.0, 0.0, 1.0, 0.0]])
+
+
+def _level_camera_ground_motion_px(f_px: float, cy_px: float, height_px: int, camera_height_m: float, step_m: float) -> float:
+    """By hand, for a level pinhole camera: the bottom row sees the ground D = h f / (rows - 1 - cy)
+    ahead; after the step the point is D - step ahead, at row cy + f h / (D - step)."""
+    below_px = height_px - 1 - cy_px
+    D = camera_height_m * f_px / below_px
+    return f_px * camera_height_m / (D - step_m) - below_px
+
+
 def test_kitti_brings_its_run_settings_under_the_users_configuration(tmp_path):
     # the package's defaults are for a small robot at 25 Hz: KITTI's reader brings a car's settings,
     # and a configuration file the user gives wins key by key
-    seq = open_kitti(make_odometry_layout(tmp_path / "kitti"))
+    seq = open_kitti(make_odometry_layout(tmp_path / "kitti", size_px=SIZE_04_PX, P=P0_04))
     defaults = RunConfig()
     config = run_config(seq)
     assert config.motion.initial_speed_from_dataset and not defaults.motion.initial_speed_from_dataset
-    assert config.frontend.tracker.max_search_half_size_px == 80 != defaults.frontend.tracker.max_search_half_size_px
+    # KITTI gives the car's speed, not a search cap: the cap and the focus area's first speed are derived
+    # (dem_graph/pipeline/derived.py) from 12 m/s, the camera's 10 Hz (times.txt) and its intrinsics
+    assert seq.run_settings()["vehicle"] == {"speed_mps": 12.0} and "max_search_half_size_px" not in seq.run_settings()["frontend"]["tracker"]
+    assert config.vehicle.speed_mps == 12.0 and seq.rig.camera.rate_hz == pytest.approx(10.0)
+    camera_height_m = seq.rig.T_body_cam[2, 3]  # 1.65 m, level (T_CAM_LIDAR)
+    motion_px = _level_camera_ground_motion_px(707.0912, 183.1104, SIZE_04_PX[1], camera_height_m, 12.0 / seq.rig.camera.rate_hz)
+    reference_px = nearest_ground_motion_px(default_rig(), REFERENCE_SPEED_MPS / REFERENCE_RATE_HZ)  # distorted: the function's
+    expected = max(40, round(40 * motion_px / reference_px))
+    assert config.frontend.tracker.max_search_half_size_px == expected == derived_search_half_size_px(seq.rig, 12.0, seq.rig.camera.rate_hz)
+    assert 100 < expected < 140 and expected != defaults.frontend.tracker.max_search_half_size_px  # 117 px here at 10 Hz; 129-130 on KITTI's drives at 9.6 Hz
+    assert config.frontend.focus.nominal_speed_mps == 12.0 != defaults.frontend.focus.nominal_speed_mps
     assert config.frontend.focus.corridor_width_m == 6.0 and config.frontend.focus.max_distance_m == 25.0
     user = tmp_path / "mine.yaml"
     user.write_text("frontend:\n  focus:\n    corridor_width_m: 4.0\n")
