@@ -55,31 +55,30 @@ def _machine_blas_threads_for_test_run_threads(request):
 # had finished. Only the order changes: every test runs, and a file's tests keep their order. A file not
 # listed takes less than 8 s; the figures need only be roughly right.
 FILE_COST_S = {
-    "test_graph_worker.py": 105,
-    "test_isam2.py": 60,
-    "test_notebooks.py": 58,
-    "test_ablation.py": 58,
-    "test_study_grid.py": 42,
-    "test_calibration_robust.py": 42,
-    "test_kitti_shared.py": 40,
-    "test_run_robustness.py": 37,
-    "test_live_pipeline.py": 30,
-    "test_imu.py": 28,
-    "test_calibration.py": 28,
-    "test_track_many.py": 26,
-    "test_ekf_imu.py": 21,
-    "test_sim_world.py": 19,
-    "test_gap_bridge.py": 19,
-    "test_cli_run.py": 17,
-    "test_ekf_run.py": 17,
-    "test_sim_sensors.py": 16,
-    "test_run_config.py": 16,
-    "test_calibration_io.py": 14,
-    "test_bag_rig.py": 14,
-    "test_config_yaml.py": 12,
-    "test_kitti.py": 11,
-    "test_own_robot_guide.py": 10,
-    "test_ekf_filter.py": 10,
+    "test_graph_worker.py": 96,
+    "test_isam2.py": 62,
+    "test_notebooks.py": 48,
+    "test_calibration_robust.py": 40,
+    "test_kitti_shared.py": 39,
+    "test_study_grid.py": 37,
+    "test_ablation.py": 34,
+    "test_run_robustness.py": 29,
+    "test_live_pipeline.py": 26,
+    "test_ekf_imu.py": 24,
+    "test_calibration.py": 22,
+    "test_imu.py": 20,
+    "test_sim_sensors.py": 18,
+    "test_sim_world.py": 17,
+    "test_config_yaml.py": 16,
+    "test_run_config.py": 15,
+    "test_track_many.py": 14,
+    "test_ekf_run.py": 13,
+    "test_calibration_io.py": 12,
+    "test_bag_rig.py": 12,
+    "test_own_robot_guide.py": 11,
+    "test_gap_bridge.py": 10,
+    "test_cli_run.py": 10,
+    "test_kitti.py": 8,
 }
 
 
@@ -143,6 +142,65 @@ def smoke_folder(tmp_path_factory):
         simulate(scenario("smoke", seed=5), folder / "smoke", preview=False)
 
     return _made_once_per_session(tmp_path_factory, "smoke_folder", write) / "smoke"
+
+
+@pytest.fixture(scope="session")
+def smoke_run(tmp_path_factory, smoke_log):
+    """``smoke_run(settings, with_dem=True)``: ``run_estimator(smoke_log, RunConfig.model_validate(settings),
+    with_dem=with_dem)``, the run of the session's `smoke` log with nothing but its settings, made once in
+    the session for every test and process that asks for the same settings (several files check the
+    same default runs) and handed to each asker as its own copy (a pickle: the same numbers, bit for
+    bit). Without the live map's pipeline (``live``: it holds the running estimator), which no asker
+    reads. ``with_dem=False`` is the same run without the DEM made after the estimator finished
+    (``run_estimator`` makes it last, from the final poses: ``dem`` and ``metrics.dem`` are all it
+    adds). A test that edits the log, patches the code or instruments the run makes its own; the first
+    asker makes it, so ask before patching anything."""
+    import dataclasses
+    import hashlib
+
+    from dem_graph.pipeline import RunConfig, run_estimator
+
+    made: dict[str, bytes] = {}
+
+    def get(settings: dict, with_dem: bool = True):
+        key = RunConfig.model_validate(settings).model_dump_json()  # (settings that validate alike: one run)
+        if key not in made:
+
+            def make(folder: Path) -> None:
+                folder.mkdir(exist_ok=True)  # (left by an asker that failed part way)
+                run = run_estimator(smoke_log, RunConfig.model_validate(settings))
+                run = dataclasses.replace(run, live=None)
+                (folder / "run.pickle").write_bytes(pickle.dumps(run, protocol=pickle.HIGHEST_PROTOCOL))
+
+            name = "smoke_run_" + hashlib.sha1(key.encode()).hexdigest()[:16]
+            made[key] = (_made_once_per_session(tmp_path_factory, name, make) / "run.pickle").read_bytes()
+        run = pickle.loads(made[key])
+        if not with_dem:
+            run.dem, run.metrics.dem = None, None
+        return run
+
+    return get
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _tracker_kernels_compiled_once(request, tmp_path_factory):
+    """The tracker's numba kernels (frontend/match_kernel.py, ``cache=True``) compiled by one test process
+    in a clean clone (no numba cache yet), the other xdist workers waiting for them and then loading them
+    from numba's cache: before, each worker compiled them at its first run (4.1 CPU-seconds a process
+    here). Three frames of PTPM (``PatchTracker.track``) and of GM (``track_many``) on the session's
+    `smoke` log compile every kernel a run uses. A single process compiles them once anyway."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        smoke_log = request.getfixturevalue("smoke_log")  # (made first: the other workers wait for the kernels only)
+
+        def compile_kernels(folder: Path) -> None:
+            from dem_graph.pipeline import RunConfig, run_estimator
+
+            folder.mkdir(exist_ok=True)
+            for estimator in ("ptpm", "gm"):
+                run_estimator(smoke_log, RunConfig(estimator=estimator, max_frames=3), with_dem=False)
+
+        _made_once_per_session(tmp_path_factory, "tracker_kernels", compile_kernels)
+    yield
 
 
 SHARED_KITTI = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti_odometry"

@@ -15,8 +15,9 @@ def _run(log, estimator, **overrides):
 
 
 @pytest.fixture(scope="module")
-def runs(smoke_log):
-    return {name: _run(smoke_log, name) for name in ("gm", "ptpm")}
+def runs(smoke_run):
+    """GM's and PTPM's runs of `smoke` with the defaults (made once in the session: other files check them too)."""
+    return {name: smoke_run({"estimator": name}) for name in ("gm", "ptpm")}
 
 
 @pytest.mark.parametrize("name", ["gm", "ptpm"])

@@ -136,14 +136,16 @@ def blackout_log(smoke_log):
 
 
 @pytest.fixture(scope="module")
-def clean_run(smoke_log):
-    """The run of `smoke` without its IMU by an estimator, made once for the tests below (the
-    estimator's frames are the same with or without the DEM the run makes after them)."""
+def clean_run(smoke_run):
+    """The run of `smoke` without its IMU by an estimator, ``run_estimator(smoke_log,
+    RunConfig(estimator=estimator, motion={"use_imu": False}))``, made once in the session for the tests
+    below and the other files that check it (the estimator's frames are the same with or without the
+    DEM the run makes after them)."""
     runs = {}
 
     def get(estimator):
         if estimator not in runs:
-            runs[estimator] = run_estimator(smoke_log, RunConfig(estimator=estimator, motion={"use_imu": False}))
+            runs[estimator] = smoke_run({"estimator": estimator, "motion": {"use_imu": False}})
         return runs[estimator]
 
     return get

@@ -139,7 +139,7 @@ def test_no_imu_is_the_run_without_the_stream(smoke_log):
                 np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
 
-def test_the_graph_estimates_the_imu_biases_and_gains_accuracy(smoke_log):
+def test_the_graph_estimates_the_imu_biases_and_gains_accuracy(smoke_log, smoke_run):
     """isam2 with the simulated IMU on `smoke` (2.6 s): the last keyframe's bias estimates are within
     the graph's own marginal covariance (6-dimensional NEES under the chi-square 99.9 % point, 22.5);
     the gyroscope's bias about the body's pitch axis, which gravity makes observable and which is
@@ -150,7 +150,7 @@ def test_the_graph_estimates_the_imu_biases_and_gains_accuracy(smoke_log):
 
     from dem_graph.pipeline import RunConfig
     from dem_graph.pipeline.live import make_estimator
-    from dem_graph.pipeline.run import feed, run_estimator
+    from dem_graph.pipeline.run import feed
 
     config = RunConfig.model_validate({"estimator": "isam2"})
     estimator = make_estimator(smoke_log.rig, smoke_log.T_world_body_initial, smoke_log.t_start_s, smoke_log.has_odometry, config)
@@ -169,6 +169,7 @@ def test_the_graph_estimates_the_imu_biases_and_gains_accuracy(smoke_log):
     assert abs(truth.gyro_bias_rad_s[i][axis]) > spec.gyro_bias_sigma
     assert abs(error[3 + axis]) < 0.25 * spec.gyro_bias_sigma
 
-    with_imu = run_estimator(smoke_log, config, with_dem=False).metrics.trajectory.ate_rmse_m
-    without = run_estimator(smoke_log, RunConfig.model_validate({"estimator": "isam2", "motion": {"use_imu": False}}), with_dem=False).metrics.trajectory.ate_rmse_m
+    # run_estimator(smoke_log, ..., with_dem=False) of both, made once in the session (other files check them too)
+    with_imu = smoke_run({"estimator": "isam2"}, with_dem=False).metrics.trajectory.ate_rmse_m
+    without = smoke_run({"estimator": "isam2", "motion": {"use_imu": False}}, with_dem=False).metrics.trajectory.ate_rmse_m
     assert with_imu <= 0.6 * without

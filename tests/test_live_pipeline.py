@@ -213,8 +213,8 @@ def test_no_laser_for_two_seconds_is_warned_once_and_the_map_ages(smoke_log, cap
     assert np.nanmax(dem.layers["last_update_s"]) <= gap_start
 
 
-def test_a_run_reports_the_live_fig8_next_to_the_hindsight_one(smoke_log):
-    run = run_estimator(smoke_log, RunConfig(estimator="ptpm"))
+def test_a_run_reports_the_live_fig8_next_to_the_hindsight_one(smoke_run):
+    run = smoke_run({"estimator": "ptpm"})  # run_estimator(smoke_log, RunConfig(estimator="ptpm")), made once in the session
     live, hindsight = run.metrics.live_map.local_window, run.metrics.dem.local_window
     assert live.frames == hindsight.frames and live.frames_with_data > 0
     # both measure the same kind of map over the same window: within 2 cm of each other on smoke

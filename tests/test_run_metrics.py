@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from dem_graph.pipeline.config import RunConfig
 from dem_graph.pipeline.metrics import summary_lines, tracking_yield
-from dem_graph.pipeline.run import run_estimator
 
 
 def test_tracking_yield_from_the_counters():
@@ -17,9 +15,9 @@ def test_tracking_yield_from_the_counters():
     assert tracking_yield({"added_laser": 3}) is None
 
 
-def test_a_run_reports_its_yield_and_prints_it(smoke_log):
+def test_a_run_reports_its_yield_and_prints_it(smoke_run):
     """The run's counters and its yield agree, and the printed line says it (PTPM on `smoke`)."""
-    run = run_estimator(smoke_log, RunConfig(estimator="ptpm"), with_dem=False)
+    run = smoke_run({"estimator": "ptpm"}, with_dem=False)  # run_estimator(smoke_log, RunConfig(estimator="ptpm"), with_dem=False), made once in the session
     m = run.metrics
     ev = m.events
     searched = sum(v for k, v in ev.items() if k.startswith("track_"))

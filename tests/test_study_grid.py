@@ -22,8 +22,16 @@ def _accuracy(rows):
 
 
 @pytest.fixture(scope="module")
-def serial_rows(tmp_path_factory):
-    return estimator_study(tmp_path_factory.mktemp("serial"), scheduler="serial", **GRID).rows
+def serial_study(tmp_path_factory):
+    """The study in series in a folder of its own, and its rows: the tests below read the folder and
+    leave it as it is (one copies it to start the study again)."""
+    folder = tmp_path_factory.mktemp("serial")
+    return folder, estimator_study(folder, scheduler="serial", **GRID).rows
+
+
+@pytest.fixture(scope="module")
+def serial_rows(serial_study):
+    return serial_study[1]
 
 
 def test_a_local_cluster_of_two_workers_gives_the_serial_rows(tmp_path, serial_rows):
@@ -32,8 +40,12 @@ def test_a_local_cluster_of_two_workers_gives_the_serial_rows(tmp_path, serial_r
     assert _accuracy(rows) == _accuracy(serial_rows)  # ATE, drift, live points: equal to the bit
 
 
-def test_a_study_started_again_keeps_what_is_done(tmp_path, serial_rows, monkeypatch):
-    first = estimator_study(tmp_path, scheduler="serial", **GRID).rows
+def test_a_study_started_again_keeps_what_is_done(tmp_path, serial_study, monkeypatch):
+    import shutil
+
+    # the study in series, as it was left (a copy of the fixture's folder: the same study, made once)
+    folder, first = serial_study
+    shutil.copytree(folder, tmp_path, dirs_exist_ok=True, symlinks=True)
     results = sorted(p.name for p in (tmp_path / "study_results").iterdir())
     assert len(results) == 6  # two datasets simulated, four runs
     # one run's result lost (a study stopped part way): only that run is made again

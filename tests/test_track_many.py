@@ -241,22 +241,22 @@ def test_track_many_argument_checks_and_empty_batch():
 
 
 @pytest.mark.parametrize("estimator", ["ptpm", "gm", "isam2"])
-def test_recorded_run_is_the_same_with_the_reference_tracker(smoke_log, estimator, monkeypatch):
+def test_recorded_run_is_the_same_with_the_reference_tracker(smoke_log, smoke_run, estimator, monkeypatch):
     """A whole run of `smoke`: every frame's pose and the front end's counters are identical with
     the tracker (batched for GM and isam2, one point at a time for PTPM) and with the per-point
-    reference in its place."""
+    reference in its place. The run with the tracker is the session's run of `smoke` with the
+    defaults (``run_estimator(smoke_log, RunConfig(estimator=estimator))``, made once: other files
+    check it too); the one with the reference is made here."""
 
-    def run():
-        config = RunConfig(estimator=estimator)
-        result = run_estimator(smoke_log, config)
+    def frames(result):
         assert result.error is None
         est = result.estimator
         return np.array([f.T_world_body for f in est.frames]), [f.n_tracked for f in est.frames], dict(est.counters)
 
-    T_new, n_new, counters_new = run()
+    T_new, n_new, counters_new = frames(smoke_run({"estimator": estimator}))
     monkeypatch.setattr(PatchTracker, "track_many", _reference_track_many)
     monkeypatch.setattr(PatchTracker, "track", _reference_track)
-    T_ref, n_ref, counters_ref = run()
+    T_ref, n_ref, counters_ref = frames(run_estimator(smoke_log, RunConfig(estimator=estimator)))
     assert len(T_new) == sum(isinstance(e, CameraFrame) for e in smoke_log.events())
     assert n_new == n_ref and counters_new == counters_ref
     np.testing.assert_array_equal(T_new, T_ref)
