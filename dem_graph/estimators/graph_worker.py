@@ -49,7 +49,7 @@ from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
 from dem_graph.frontend.frontend import PointKind
 from dem_graph.geometry.camera import PinholeCamera
 from dem_graph.geometry.rig import ImuSpec
-from dem_graph.geometry.se3 import invert, nearest_pose
+from dem_graph.geometry.se3 import invert, nearest_pose, transform_points
 
 
 @dataclass(frozen=True)
@@ -226,8 +226,9 @@ class GraphWorker:
     def _add_keyframe(self, m: KeyframeMessage) -> None:
         g, s = self.graph, self.setup
         k = g.last_keyframe
-        C = self._stale_guess_correction(m)
+        C = None  # the attached first frame brings no guess of its own
         if m.k > k:
+            C = self._stale_guess_correction(m)
             k = g.add_keyframe(m.t_s, m.T_world_body if C is None else C @ m.T_world_body)
             if k != m.k:
                 raise DemGraphError(f"keyframe {m.k} sent to the graph, which expected keyframe {k}")
@@ -249,18 +250,18 @@ class GraphWorker:
             g.add_factor(projection_factor(X(k), L(lm), z, float(sigma), self._K, s.T_body_cam, robust=s.robust))
             g.observed(lm)
         for p in m.new_points:
-            g.add_point(p.landmark, p.X_world if C is None else C[:3, :3] @ p.X_world + C[:3, 3])
+            g.add_point(p.landmark, p.X_world if C is None else transform_points(C, p.X_world))
             for f in seed_factors(X(k), L(p.landmark), p.kind, p.p_body, p.Sigma_body, s.camera, self._K, s.T_body_cam, s.camera_point_sigma_px):
                 g.add_factor(f)
 
     def _stale_guess_correction(self, m: KeyframeMessage) -> np.ndarray | None:
-        """Where the front end guessed keyframe ``m.k`` and its new points from a keyframe ``m.k - 1``
+        """Where the front end guessed the new keyframe ``m.k`` and its new points from a keyframe ``m.k - 1``
         older than the graph's (its results late), the world-frame correction that carries its guess
         onto the graph's estimate of ``m.k - 1``; None when the two agree to the bit (in-process, or
         the results on time) or the graph has no estimate of ``m.k - 1``. A late front end then costs
         the graph no step away from its own estimates."""
         T_graph = self.graph.poses.get(m.k - 1)
-        if m.T_world_prev is None or T_graph is None or m.k <= self.graph.last_keyframe or np.array_equal(T_graph, m.T_world_prev):
+        if m.T_world_prev is None or T_graph is None or np.array_equal(T_graph, m.T_world_prev):
             return None
         return nearest_pose(T_graph @ invert(m.T_world_prev))
 
