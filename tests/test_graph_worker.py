@@ -21,6 +21,7 @@ import pytest
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators import keyframe_graph
 from dem_graph.estimators.graph_worker import GraphWorker, InProcessGraph, KeyframeMessage, ProcessGraph, RestartMessage
+from dem_graph.geometry.se3 import make_pose, rotation_from_rpy, transform_points
 from dem_graph.pipeline import RunConfig, run_estimator
 
 
@@ -135,11 +136,8 @@ def test_a_late_front_ends_guesses_are_carried_onto_the_graphs_estimate(recorded
             worker.cut_if_due()
     m = messages[k_new]
     T_prev = on_time.graph.poses[m.k - 1]
-    a = np.radians(1.0)
-    D = np.eye(4)
-    D[:3, :3] = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
-    D[:3, 3] = [0.03, -0.02, 0.01]
-    moved_points = [dataclasses.replace(p, X_world=D[:3, :3] @ p.X_world + D[:3, 3]) for p in m.new_points]
+    D = make_pose(rotation_from_rpy(0.0, 0.0, np.radians(1.0)), [0.03, -0.02, 0.01])
+    moved_points = [dataclasses.replace(p, X_world=transform_points(D, p.X_world)) for p in m.new_points]
     moved = dataclasses.replace(m, T_world_body=D @ m.T_world_body, T_world_prev=D @ T_prev, new_points=moved_points)
     want = on_time.apply([dataclasses.replace(m, T_world_prev=T_prev.copy())])
     got = late.apply([moved])

@@ -247,7 +247,8 @@ class GraphClient:
         want_marginal = every > 0 and not self._marginal_asked and t_s - self.anchor.t_s >= every
         self._marginal_asked |= want_marginal
         # keyframe k - 1 as this frame's pose was measured from: in flight as corrected since, else the graph's
-        T_prev = next((T.copy() for T in (self._sent_T.get(k - 1), self.poses.get(k - 1)) if T is not None), None)
+        T_prev = self._sent_T.get(k - 1, self.poses.get(k - 1))
+        T_prev = None if T_prev is None else T_prev.copy()
         self._graph.send(KeyframeMessage(k, t_s, T.copy(), self.U_kf, self.Q_kf, *observations, links, new_landmarks, want_marginal, imu, T_prev))
         self._sent_T[k] = T.copy()
         self._Q_since[k] = np.zeros((6, 6))
