@@ -13,6 +13,8 @@ from dem_graph.estimators.graph_client import GraphClient, Landmarks, PoseAnchor
 from dem_graph.estimators.graph_worker import GraphResult
 from dem_graph.estimators.isam2_config import Isam2Config
 from dem_graph.estimators.live_points import LivePoints
+from dem_graph.geometry.lie import adjoint
+from dem_graph.geometry.se3 import invert
 
 SIGMA_ROT, SIGMA_POS = 0.01, 0.02  # rad, m
 
@@ -105,6 +107,29 @@ def test_graph_client_moves_what_it_sent_by_the_graphs_correction(smoke_log):
     client.count(counters)
     assert counters == Counter(keyframes=2, graph_lag_keyframes_median=0, graph_lag_keyframes_max=0)
     client.close(client.finish()[1])
+
+
+def test_graph_client_carries_the_output_covariance_with_the_predicted_motion(smoke_log):
+    """With an IMU a frame's pose is predicted with the gyroscope's rotation: the output covariance
+    since the anchor takes that prediction's covariance, while the motion sent with the next keyframe
+    (the graph's odometry factor; the gyroscope has its own) keeps the odometry's. A translation does
+    not move a rotation error, so over 25 frames straight ahead each rotation block is the sum of the
+    frames' variances. Without ``predicted`` both are the odometry's, as before."""
+    Q_odo = np.diag([1e-5] * 3 + [1e-6] * 3)  # wheel odometry's rotation over a frame: about 0.2 deg
+    Q_gyro = np.diag([1e-9] * 3 + [1e-6] * 3)  # the gyroscope's: about 0.002 deg, the same translation
+    U = _translation(0.06)
+    A = adjoint(invert(U))
+    with_imu = GraphClient(Isam2Config(), smoke_log.rig, np.eye(4), np.eye(6) * 1e-8, 0.0, Counter())
+    without = GraphClient(Isam2Config(), smoke_log.rig, np.eye(4), np.eye(6) * 1e-8, 0.0, Counter())
+    for _ in range(25):
+        with_imu.carry(U, Q_odo, A, predicted=(Q_gyro, A))
+        without.carry(U, Q_odo, A)
+    np.testing.assert_allclose(np.diag(with_imu.Q_kf)[:3], 25 * 1e-5, rtol=1e-12)
+    np.testing.assert_allclose(np.diag(with_imu.anchor.Q)[:3], 25 * 1e-9, rtol=1e-12)
+    np.testing.assert_array_equal(with_imu.Q_kf, without.Q_kf)
+    np.testing.assert_array_equal(without.anchor.Q, without.Q_kf)
+    for client in (with_imu, without):
+        client.close(client.finish()[1])
 
 
 @pytest.mark.parametrize("every_s, marginal", [(0.0, False), (0.03, True)])

@@ -185,16 +185,22 @@ class GraphClient:
         return self._graph.wait_for(k, 0.0)
 
     # --- per frame ---------------------------------------------------------------------------
-    def carry(self, U: np.ndarray, Q: np.ndarray, A: np.ndarray | None = None) -> None:
+    def carry(self, U: np.ndarray, Q: np.ndarray, A: np.ndarray | None = None, predicted: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """A frame's motion ``U`` (covariance ``Q``; ``A``: ``adjoint(invert(U))`` when the caller has
-        it) extends the motion since the last keyframe and the motion covariances since the anchor
-        and since each keyframe whose result is not back."""
+        it) extends the motion since the last keyframe, which goes to the graph's motion factor.
+        The motion covariances since the anchor and since each keyframe whose result is not back,
+        which carry the output pose covariance, take the motion the frame's pose was predicted with:
+        ``predicted`` (its covariance and adjoint) where that is not ``U`` (with an IMU, the
+        gyroscope's rotation, whose covariance is four orders of magnitude below wheel odometry's:
+        carried with the odometry's, a frame's rotation sigma grew to a degree between two marginals
+        and the pose NEES fell to a quarter of the dimension)."""
         A = adjoint(invert(U)) if A is None else A
         self.U_kf = self.U_kf @ U
         self.Q_kf = A @ self.Q_kf @ A.T + Q
-        self.anchor.Q = A @ self.anchor.Q @ A.T + Q
+        Q_pose, A_pose = (Q, A) if predicted is None else predicted
+        self.anchor.Q = A_pose @ self.anchor.Q @ A_pose.T + Q_pose
         for k, Q_k in self._Q_since.items():
-            self._Q_since[k] = A @ Q_k @ A.T + Q
+            self._Q_since[k] = A_pose @ Q_k @ A_pose.T + Q_pose
 
     def split_landmark(self, point_id: int, old: int, Sigma_old: np.ndarray) -> int:
         """A refreshed patch: point ``point_id`` continues on a new landmark (see :meth:`Landmarks.split`),

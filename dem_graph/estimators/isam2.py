@@ -147,13 +147,15 @@ class Isam2Slam(FrameDrivenEstimator):
             if not len(self.live):
                 filt.restart_map()
         dt, U_odo, Q_odo = self._motion_since_last_frame(event)
-        A = adjoint(invert(U_odo))  # carries every covariance over the frame's motion
-        client.carry(U_odo, Q_odo, A)  # the graph's motion factor: the odometry (the gyro reaches the graph in its own factor)
-        U, Q, imu_span = U_odo, Q_odo, None
+        A_odo = adjoint(invert(U_odo))  # carries every covariance over the frame's motion
+        U, Q, A, imu_span = U_odo, Q_odo, A_odo, None
         if self._imu is not None:  # the frame's prediction: its rotation by the gyro (the samples go to the batch's log too)
             imu_span = self._imu.span(event.t_s - dt, event.t_s) if dt > 0 else None
             U, Q = self._gyro_rotation(imu_span, event.t_s - dt, event.t_s, U, Q)
             A = adjoint(invert(U))
+        # the graph's motion factor: the odometry (the gyro reaches the graph in its own factor); the
+        # output pose covariance: the prediction's
+        client.carry(U_odo, Q_odo, A_odo, predicted=None if self._imu is None else (Q, A))
         T_pred = filt.predict(U, Q, A)
         t1 = time.perf_counter()
         # a frame without texture (the reader marked it) is not searched: its pose is the prediction
