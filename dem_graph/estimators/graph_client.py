@@ -190,10 +190,9 @@ class GraphClient:
         it) extends the motion since the last keyframe, which goes to the graph's motion factor.
         The motion covariances since the anchor and since each keyframe whose result is not back,
         which carry the output pose covariance, take the motion the frame's pose was predicted with:
-        ``predicted`` (its covariance and adjoint) where that is not ``U`` (with an IMU, the
-        gyroscope's rotation, whose covariance is four orders of magnitude below wheel odometry's:
-        carried with the odometry's, a frame's rotation sigma grew to a degree between two marginals
-        and the pose NEES fell to a quarter of the dimension)."""
+        ``predicted`` (its covariance and adjoint; None: ``U``'s). With an IMU that is the
+        gyroscope's rotation, far tighter than wheel odometry's (docs/imu_study.md, "Every estimator
+        on an Intel Xeon")."""
         A = adjoint(invert(U)) if A is None else A
         self.U_kf = self.U_kf @ U
         self.Q_kf = A @ self.Q_kf @ A.T + Q

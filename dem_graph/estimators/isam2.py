@@ -154,8 +154,8 @@ class Isam2Slam(FrameDrivenEstimator):
             U, Q = self._gyro_rotation(imu_span, event.t_s - dt, event.t_s, U, Q)
             A = adjoint(invert(U))
         # the graph's motion factor: the odometry (the gyro reaches the graph in its own factor); the
-        # output pose covariance: the prediction's
-        client.carry(U_odo, Q_odo, A_odo, predicted=None if self._imu is None else (Q, A))
+        # output pose covariance: the prediction's (the odometry's too without an IMU)
+        client.carry(U_odo, Q_odo, A_odo, predicted=(Q, A))
         T_pred = filt.predict(U, Q, A)
         t1 = time.perf_counter()
         # a frame without texture (the reader marked it) is not searched: its pose is the prediction
