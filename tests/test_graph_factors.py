@@ -6,7 +6,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from dem_graph.estimators.graph_factors import calibration, odometry_factor, point_in_frame_factors, projection_factor
+from dem_graph.estimators.graph_factors import ProjectionFactors, calibration, odometry_factor, point_in_frame_factors, projection_factor
 from dem_graph.geometry.camera import PinholeCamera
 from dem_graph.geometry.lie import retract
 from dem_graph.geometry.rig import default_rig
@@ -107,6 +107,31 @@ def test_projection_factor_matches_the_camera_model():
         assert g.error(v) == pytest.approx(0.5 * (1.0 / 2.0) ** 2, rel=1e-6)
     with pytest.raises(ValueError):
         calibration(PinholeCamera(width_px=10, height_px=10, fx_px=1.0, fy_px=1.0, cx_px=5.0, cy_px=5.0, distortion=(0, 0, 0, 0, 0.1)))
+
+
+@pytest.mark.parametrize("robust", [True, False])
+def test_shared_projection_factors_are_the_one_off_factors(robust):
+    """ProjectionFactors (the graph's hot loop) makes the factor projection_factor makes: the same
+    whitened error and Jacobians, to the bit, at points on and off the measurement (in the Huber
+    kernel's linear region too), with one noise model per sigma."""
+    rig = default_rig()
+    K = calibration(rig.camera_model)
+    make = ProjectionFactors(K, rig.T_body_cam, robust=robust)
+    T = make_pose(rotation_from_rpy(0.01, -0.02, 0.3), [2.0, -1.0, 0.05])
+    rng = np.random.default_rng(7)
+    p_body = np.column_stack([rng.uniform(3, 8, 6), rng.uniform(-2, 2, 6), rng.uniform(-0.3, 0.3, 6)])
+    X = transform_points(T, p_body)
+    uv, in_front = rig.camera_model.project(transform_points(invert(T @ rig.T_body_cam), X))
+    assert in_front.all()
+    for k, (offset_px, sigma_px) in enumerate([(0.0, 0.3), (0.5, 0.3), (4.0, 0.3), (-3.0, 0.6), (0.2, 0.6), (9.0, 1.0)]):
+        z = uv[k] + [offset_px, -0.5 * offset_px]
+        v = _values(0, T, 1, X[k])
+        shared, one_off = make(0, 1, z, sigma_px), projection_factor(0, 1, z, sigma_px, K, rig.T_body_cam, robust=robust)
+        assert shared.error(v) == one_off.error(v)
+        a, b = shared.linearize(v), one_off.linearize(v)
+        np.testing.assert_array_equal(a.jacobian()[0], b.jacobian()[0])
+        np.testing.assert_array_equal(a.jacobian()[1], b.jacobian()[1])
+    assert make.noise(0.3) is make.noise(0.3) and make.noise(0.3) is not make.noise(0.6)
 
 
 def test_range_factor_measures_from_the_sensor():

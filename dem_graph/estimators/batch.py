@@ -40,7 +40,7 @@ from gtsam.symbol_shorthand import B, L, V, X
 
 from dem_graph.errors import DemGraphError, one_line
 from dem_graph.estimators.base import ONLINE_TRAJECTORY, EstimatorResult
-from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
+from dem_graph.estimators.graph_factors import ProjectionFactors, calibration, link_factor, odometry_factor, seed_factors
 from dem_graph.estimators.imu_preintegration import bias_sigmas, preintegrate, preintegration_params
 from dem_graph.estimators.measurement_log import MeasurementLog
 from dem_graph.geometry.rig import ImuSpec, SensorRig
@@ -131,8 +131,9 @@ def build_graph(mlog: MeasurementLog, rig: SensorRig, T0: np.ndarray, P0: np.nda
         for factor in seed_factors(X(f + 1), L(lm), seed.kind, seed.p_body, seed.Sigma_body, rig.camera_model, K, T_body_cam, sigma_seed_px):
             graph.add(factor)
     frames, landmarks, uv = mlog.observations()
+    projection = ProjectionFactors(K, T_body_cam, robust=robust)
     for f, lm, z in zip(frames.tolist(), landmarks.tolist(), uv):
-        graph.add(projection_factor(X(f + 1), L(lm), z, sigma_px, K, T_body_cam, robust=robust))
+        graph.add(projection(X(f + 1), L(lm), z, sigma_px))
     return graph
 
 

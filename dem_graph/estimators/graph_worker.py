@@ -43,7 +43,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from dem_graph.errors import DemGraphError
-from dem_graph.estimators.graph_factors import calibration, link_factor, odometry_factor, projection_factor, seed_factors
+from dem_graph.estimators.graph_factors import ProjectionFactors, calibration, link_factor, odometry_factor, seed_factors
 from dem_graph.estimators.imu_preintegration import bias_sigmas, preintegrate, preintegration_params
 from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
 from dem_graph.frontend.frontend import PointKind
@@ -156,6 +156,7 @@ class GraphWorker:
     def __init__(self, setup: GraphSetup):
         self.setup = setup
         self._K = calibration(setup.camera)
+        self._projection = ProjectionFactors(self._K, setup.T_body_cam, robust=setup.robust)
         self._imu_params = preintegration_params(setup.imu) if setup.imu is not None else None
         self.graph = KeyframeGraph(setup.T_world_body_0, setup.P0, setup.t0_s, setup.lag_s, setup.relinearize_threshold, setup.relinearize_skip, setup.marginalize_every_s, setup.optimizer)
         self.failed = False
@@ -247,7 +248,7 @@ class GraphWorker:
             lm = int(lm)
             if not g.in_window(lm):  # marginalised since the front end last heard
                 continue
-            g.add_factor(projection_factor(X(k), L(lm), z, float(sigma), self._K, s.T_body_cam, robust=s.robust))
+            g.add_factor(self._projection(X(k), L(lm), z, sigma))
             g.observed(lm)
         for p in m.new_points:
             g.add_point(p.landmark, p.X_world if C is None else transform_points(C, p.X_world))
