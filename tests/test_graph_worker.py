@@ -310,6 +310,27 @@ def test_a_replay_as_fast_as_possible_waits_for_the_graph_and_one_at_the_sensors
     assert policy(realtime=True, isam2={"graph_when_behind": "wait"}) == "wait"
 
 
+def test_the_graph_in_a_second_process_takes_each_landmark_every_second_keyframe(smoke_log, monkeypatch):
+    """``observation_every`` unset: with the graph in a second process each landmark's observation
+    goes at every second keyframe, the landmarks taking turns (landmark + keyframe even), carrying
+    the two frames since its last (sigma_px / sqrt(2) for a point tracked throughout); in this
+    process, at every keyframe with sigma_px; set, it is kept either way."""
+    messages = []
+    real_send = ProcessGraph.send
+    monkeypatch.setattr(ProcessGraph, "send", lambda self, m: (messages.append(m), real_send(self, m))[1])
+    run = run_estimator(smoke_log, RunConfig.model_validate({"estimator": "isam2", "isam2": {"graph_process": True}}))
+    assert run.error is None
+    keyframes = [m for m in messages if isinstance(m, KeyframeMessage) and len(m.landmarks)]
+    assert len(keyframes) > 30 and all(np.all((m.landmarks + m.k) % 2 == 0) for m in keyframes)
+    sigma_px = run.config.frontend.sigma_px
+    assert np.median(np.concatenate([m.sigma_px for m in keyframes[3:]])) == pytest.approx(sigma_px / np.sqrt(2))
+    from dem_graph.estimators.isam2_config import Isam2Config
+
+    spacing = {(process, every): Isam2Config(graph_process=process, observation_every=every).observation_spacing for process in (False, True) for every in (None, 1, 3)}
+    assert spacing == {(False, None): 1, (False, 1): 1, (False, 3): 3, (True, None): 2, (True, 1): 1, (True, 3): 3}
+    assert Isam2Config(graph_process=True, batch=True).observation_spacing == 1  # (the batch's online pass)
+
+
 def test_frames_merged_while_the_graph_is_behind(smoke_log, monkeypatch):
     """A graph that cannot take every other keyframe (here told so, reproducibly, in this
     process): those frames are not keyframes, their observations go with the next one, and the run
