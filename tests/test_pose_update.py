@@ -73,3 +73,43 @@ def test_mismatched_lengths_are_refused():
     rig = default_rig()
     with pytest.raises(ValueError):
         update_pose(np.eye(4), np.eye(6), np.zeros((3, 3)), np.zeros((2, 3, 3)), np.zeros((3, 2)), rig.camera_model, rig.T_body_cam, 1.0)
+
+
+@pytest.mark.parametrize("robust", [True, False])
+def test_the_compiled_normal_equations_are_the_projections_ones(robust):
+    """The pose update's compiled per-point loop (pose_kernel.normal_equations) gives the normal
+    equations of the numpy formulation (project_with_jacobians, R_i = sigma^2 I + H_x Sigma H_x^T,
+    Huber weights, sum H^T W H and H^T W r) to 1e-9 relative, with lens distortion, points behind
+    the camera and pixels that are NaN left out, and outliers in the Huber kernel's linear part."""
+    from dem_graph.estimators.pose_kernel import camera_intrinsics, normal_equations
+    from dem_graph.estimators.pose_update import HUBER_K, project_with_jacobians
+    from dem_graph.geometry.camera import PinholeCamera
+
+    rng = np.random.default_rng(11)
+    rig, T_true, X = _scene(rng, n=80)
+    cam = PinholeCamera(width_px=800, height_px=600, fx_px=560.0, fy_px=555.0, cx_px=399.5, cy_px=301.0, distortion=(-0.05, 0.01, 0.001, -0.0005, 0.002))
+    X[:3] = transform_points(T_true, np.array([[-2.0, 0.1, 0.0], [-1.0, -0.3, 0.2], [-5.0, 1.0, -0.1]]))  # behind the camera
+    T = retract(T_true, np.array([0.004, -0.003, 0.006, 0.02, -0.01, 0.005]))
+    A_ = rng.normal(size=(len(X), 3, 3)) * 0.01
+    Sigma = A_ @ np.swapaxes(A_, 1, 2) + 1e-6 * np.eye(3)
+    uv_true, _, _, _ = project_with_jacobians(T_true, X, cam, rig.T_body_cam)
+    z = uv_true + rng.normal(scale=0.5, size=uv_true.shape)
+    z[5:15] += 8.0  # outliers
+    z[20] = np.nan
+    sigma_px = 0.7
+    # the numpy formulation
+    uv, Hp, Hx, in_front = project_with_jacobians(T, X, cam, rig.T_body_cam)
+    ok = in_front & np.isfinite(z).all(axis=1)
+    W = np.linalg.inv(sigma_px**2 * np.eye(2) + Hx[ok] @ Sigma[ok] @ np.swapaxes(Hx[ok], 1, 2))
+    r = z[ok] - uv[ok]
+    if robust:
+        d = np.sqrt(np.einsum("ni,nij,nj->n", r, W, r))
+        W = W * np.where(d <= HUBER_K, 1.0, HUBER_K / d)[:, None, None]
+        assert np.sum(d > HUBER_K) >= 10
+    HtW = np.swapaxes(Hp[ok], 1, 2) @ W
+    A_ref, b_ref = np.einsum("nij,njk->ik", HtW, Hp[ok]), np.einsum("nij,nj->i", HtW, r)
+    T_cam_body = invert(rig.T_body_cam)
+    A, b, used = normal_equations(T[:3, :3].copy(), T[:3, 3].copy(), X, Sigma, z, T_cam_body[:3, :3].copy(), T_cam_body[:3, 3].copy(), camera_intrinsics(cam), sigma_px, HUBER_K if robust else 0.0)
+    assert used == ok.sum() == len(X) - 4
+    np.testing.assert_allclose(A, A_ref, rtol=1e-9, atol=1e-9 * np.abs(A_ref).max())
+    np.testing.assert_allclose(b, b_ref, rtol=1e-9, atol=1e-9 * np.abs(b_ref).max())

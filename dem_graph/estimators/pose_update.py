@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dem_graph.estimators.pose_kernel import camera_intrinsics, normal_equations
 from dem_graph.geometry.camera import PinholeCamera
 from dem_graph.geometry.lie import local, retract, skew
 from dem_graph.geometry.se3 import invert
@@ -54,22 +55,19 @@ def update_pose(
         raise ValueError(f"points, pixels and covariances must have the same length, got {len(X)}, {len(z)}, {len(Sig)}")
     P0_inv = np.linalg.inv(P_prior)
     T = np.array(T_world_body_prior, dtype=float)
+    T_cam_body = invert(T_body_cam)
+    R_cam_body, t_cam_body = np.ascontiguousarray(T_cam_body[:3, :3]), np.ascontiguousarray(T_cam_body[:3, 3])
+    intrinsics = camera_intrinsics(camera)
+    X, Sig, z = np.ascontiguousarray(X), np.ascontiguousarray(Sig), np.ascontiguousarray(z)
     for _ in range(max(iterations, 1)):
-        uv, Hp, Hx, in_front = project_with_jacobians(T, X, camera, T_body_cam)
-        ok = in_front & np.isfinite(z).all(axis=1)
-        R_i = sigma_px**2 * np.eye(2) + Hx @ Sig @ np.swapaxes(Hx, 1, 2)
-        W = np.linalg.inv(R_i[ok])  # (m,2,2)
-        r = z[ok] - uv[ok]  # residuals
-        H = Hp[ok]
-        if robust and len(r):
-            d = np.sqrt(np.einsum("ni,nij,nj->n", r, W, r))
-            w = np.where(d <= HUBER_K, 1.0, HUBER_K / np.maximum(d, 1e-12))
-            W = W * w[:, None, None]
+        # the points' terms (pixels, Jacobians, innovation covariances, Huber weights) in one compiled loop
+        HtWH, HtWr, _ = normal_equations(
+            np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), X, Sig, z, R_cam_body, t_cam_body, intrinsics, float(sigma_px), HUBER_K if robust else 0.0
+        )
         # Gauss-Newton on |xi_0 + dx|^2_P0 + sum |r - H dx|^2_R, with xi_0 = local(prior, T)
         xi0 = local(T_world_body_prior, T)
-        HtW = np.swapaxes(H, 1, 2) @ W
-        info = P0_inv + np.einsum("nij,njk->ik", HtW, H)
-        g = -P0_inv @ xi0 + np.einsum("nij,nj->i", HtW, r)
+        info = P0_inv + HtWH
+        g = -P0_inv @ xi0 + HtWr
         dx = np.linalg.solve(info, g)
         T = retract(T, dx)
         if np.max(np.abs(dx)) < 1e-8:  # radians and metres: far below any pixel
