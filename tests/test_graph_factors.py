@@ -111,9 +111,16 @@ def test_projection_factor_matches_the_camera_model():
 
 @pytest.mark.parametrize("robust", [True, False])
 def test_shared_projection_factors_are_the_one_off_factors(robust):
-    """ProjectionFactors (the graph's hot loop) makes the factor projection_factor makes: the same
-    whitened error and Jacobians, to the bit, at points on and off the measurement (in the Huber
-    kernel's linear region too), with one noise model per sigma."""
+    """ProjectionFactors (the graph's hot loop) makes the factor made anew from gtsam's parts: the
+    same whitened error and Jacobians, to the bit, at points on and off the measurement (in the
+    Huber kernel's linear region too), with one noise model per sigma."""
+
+    def one_off_factor(z, sigma_px):
+        noise = gtsam.noiseModel.Isotropic.Sigma(2, sigma_px)
+        if robust:
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345), noise)
+        return gtsam.GenericProjectionFactorCal3DS2(gtsam.Point2(z[0], z[1]), noise, 0, 1, K, gtsam.Pose3(rig.T_body_cam))
+
     rig = default_rig()
     K = calibration(rig.camera_model)
     make = ProjectionFactors(K, rig.T_body_cam, robust=robust)
@@ -126,7 +133,7 @@ def test_shared_projection_factors_are_the_one_off_factors(robust):
     for k, (offset_px, sigma_px) in enumerate([(0.0, 0.3), (0.5, 0.3), (4.0, 0.3), (-3.0, 0.6), (0.2, 0.6), (9.0, 1.0)]):
         z = uv[k] + [offset_px, -0.5 * offset_px]
         v = _values(0, T, 1, X[k])
-        shared, one_off = make(0, 1, z, sigma_px), projection_factor(0, 1, z, sigma_px, K, rig.T_body_cam, robust=robust)
+        shared, one_off = make(0, 1, z, sigma_px), one_off_factor(z, sigma_px)
         assert shared.error(v) == one_off.error(v)
         a, b = shared.linearize(v), one_off.linearize(v)
         np.testing.assert_array_equal(a.jacobian()[0], b.jacobian()[0])

@@ -21,6 +21,7 @@ import pytest
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators import keyframe_graph
 from dem_graph.estimators.graph_worker import GraphWorker, InProcessGraph, KeyframeMessage, ProcessGraph, RestartMessage
+from dem_graph.estimators.isam2_config import Isam2Config
 from dem_graph.geometry.se3 import make_pose, rotation_from_rpy, transform_points
 from dem_graph.pipeline import RunConfig, run_estimator
 
@@ -324,8 +325,6 @@ def test_the_graph_in_a_second_process_takes_each_landmark_every_second_keyframe
     assert len(keyframes) > 30 and all(np.all((m.landmarks + m.k) % 2 == 0) for m in keyframes)
     sigma_px = run.config.frontend.sigma_px
     assert np.median(np.concatenate([m.sigma_px for m in keyframes[3:]])) == pytest.approx(sigma_px / np.sqrt(2))
-    from dem_graph.estimators.isam2_config import Isam2Config
-
     spacing = {(process, every): Isam2Config(graph_process=process, observation_every=every).observation_spacing for process in (False, True) for every in (None, 1, 3)}
     assert spacing == {(False, None): 1, (False, 1): 1, (False, 3): 3, (True, None): 2, (True, 1): 1, (True, 3): 3}
     assert Isam2Config(graph_process=True, batch=True).observation_spacing == 1  # (the batch's online pass)

@@ -91,22 +91,11 @@ def calibration(camera: PinholeCamera) -> gtsam.Cal3DS2:
     return gtsam.Cal3DS2(camera.fx_px, camera.fy_px, 0.0, camera.cx_px, camera.cy_px, k1, k2, p1, p2)
 
 
-def projection_factor(
-    pose_key: int, point_key: int, uv_px: np.ndarray, sigma_px: float, K: gtsam.Cal3DS2, T_body_cam: np.ndarray, robust: bool = True
-) -> gtsam.GenericProjectionFactorCal3DS2:
-    """The pixel ``uv_px`` of point ``point_key`` seen from body pose ``pose_key`` through ``T_body_cam``."""
-    noise = gtsam.noiseModel.Isotropic.Sigma(2, float(sigma_px))
-    if robust:
-        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K), noise)
-    uv = np.asarray(uv_px, dtype=float)
-    return gtsam.GenericProjectionFactorCal3DS2(gtsam.Point2(uv[0], uv[1]), noise, pose_key, point_key, K, gtsam.Pose3(np.asarray(T_body_cam, dtype=float)))
-
-
 class ProjectionFactors:
-    """:func:`projection_factor` for one camera, many times: the calibration, the sensor offset
-    ``T_body_cam`` and each pixel sigma's noise model are made once and shared by the factors (gtsam's
-    are immutable), so a factor costs its own construction only (a third of the time of
-    :func:`projection_factor` per observation; the same factors)."""
+    """Projection factors of one camera: the calibration, the sensor offset ``T_body_cam`` and each
+    pixel sigma's noise model are made once and shared by the factors (gtsam's are immutable), so
+    in a hot loop a factor costs its own construction only (a third of the time of making each
+    anew)."""
 
     def __init__(self, K: gtsam.Cal3DS2, T_body_cam: np.ndarray, robust: bool = True):
         self._K = K
@@ -129,6 +118,14 @@ class ProjectionFactors:
         """The pixel ``uv_px`` of point ``point_key`` seen from body pose ``pose_key``, within ``sigma_px``."""
         u, v = uv_px
         return gtsam.GenericProjectionFactorCal3DS2(gtsam.Point2(float(u), float(v)), self.noise(float(sigma_px)), pose_key, point_key, self._K, self._sensor)
+
+
+def projection_factor(
+    pose_key: int, point_key: int, uv_px: np.ndarray, sigma_px: float, K: gtsam.Cal3DS2, T_body_cam: np.ndarray, robust: bool = True
+) -> gtsam.GenericProjectionFactorCal3DS2:
+    """The pixel ``uv_px`` of point ``point_key`` seen from body pose ``pose_key`` through ``T_body_cam``
+    (one factor; :class:`ProjectionFactors` for many)."""
+    return ProjectionFactors(K, T_body_cam, robust=robust)(pose_key, point_key, uv_px, sigma_px)
 
 
 def seed_factors(
