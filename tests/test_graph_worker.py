@@ -85,6 +85,23 @@ def test_the_second_process_smooths_exactly_as_this_one(recorded):
         graph.close()
 
 
+@pytest.mark.skipif(not hasattr(os, "getpriority"), reason="Unix scheduling priorities")
+def test_the_second_process_runs_at_the_priority_it_was_given(recorded):
+    """``graph_process_nice``: the graph process's nice value is the estimator's plus the setting
+    (read back from the kernel), and 0 leaves it at the estimator's; the process still answers."""
+    setup, messages, _ = recorded
+    own = os.getpriority(os.PRIO_PROCESS, 0)
+    for nice in (0, 7):
+        graph = ProcessGraph(setup, nice=nice)
+        try:
+            graph.send(messages[0])
+            (got,) = _wait(graph)
+            assert got.k == messages[0].k and got.failure is None
+            assert os.getpriority(os.PRIO_PROCESS, graph._process.pid) == min(own + nice, 19)
+        finally:
+            graph.close()
+
+
 def test_an_indeterminate_window_is_eliminated_again_with_the_same_estimate(recorded):
     """The recovery from an update iSAM2 finds indeterminate (the IMU's stiff factors): a new iSAM2
     over the same factors from the kept estimates, velocities and biases last. Forced after 20

@@ -131,7 +131,7 @@ class GraphClient:
             rig.camera_model, np.array(rig.T_body_cam, dtype=float), c.frontend.camera_point_sigma_px, c.split_link_sigma_m, c.robust,
             rig.imu if c.motion.use_imu else None, c.motion.initial_sigma_speed_mps,
         )  # fmt: skip
-        self._graph = ProcessGraph(setup, c.graph_max_lag) if c.graph_process else InProcessGraph(setup, c.graph_delay_keyframes)
+        self._graph = ProcessGraph(setup, c.graph_max_lag, c.graph_process_nice) if c.graph_process else InProcessGraph(setup, c.graph_delay_keyframes)
         self._when_behind = c.graph_when_behind or "merge"
         # per graph update taken: its time by phase, seconds ("total": the whole update)
         self.update_phases: dict[str, list[float]] = {}

@@ -408,10 +408,10 @@ class ProcessGraph:
     only to keep the front end within ``max_lag`` keyframes of the graph's newest result, and takes
     the results that arrive meanwhile."""
 
-    def __init__(self, setup: GraphSetup, max_lag: int = 10):
+    def __init__(self, setup: GraphSetup, max_lag: int = 10, nice: int = 0):
         ours, theirs = socket.socketpair()
         try:
-            command = [sys.executable, "-m", __name__, str(theirs.fileno()), str(os.getpid())]
+            command = [sys.executable, "-m", __name__, str(theirs.fileno()), str(os.getpid()), str(int(nice))]
             with _sigint_held():
                 self._process = subprocess.Popen(command, pass_fds=(theirs.fileno(),))
         except OSError as exc:
@@ -532,10 +532,22 @@ class ProcessGraph:
         atexit.unregister(self.close)
 
 
-def main(fd: int, estimator_pid: int) -> None:
-    """The second process, connected on ``fd`` to the estimator's process ``estimator_pid``."""
+def _lower_priority(nice: int) -> None:
+    """This process's scheduling priority lowered by ``nice`` (where the system has ``os.nice``), so
+    that where the cores are short, the front end's frames go first and the graph falls behind."""
+    if nice > 0 and hasattr(os, "nice"):
+        try:
+            os.nice(nice)
+        except OSError:  # not allowed here: the graph runs at the front end's priority
+            pass
+
+
+def main(fd: int, estimator_pid: int, nice: int = 0) -> None:
+    """The second process, connected on ``fd`` to the estimator's process ``estimator_pid``, its
+    priority lowered by ``nice``."""
     if not _follow_the_estimator(estimator_pid):
         return
+    _lower_priority(nice)
     try:
         _serve(Connection(fd))
     except (EOFError, OSError):  # the estimator has gone (ended early, interrupted, killed): no one to answer
@@ -546,7 +558,7 @@ if __name__ == "__main__":
     # through the package, so the messages unpickle to the classes the worker checks against
     from dem_graph.estimators.graph_worker import main as package_main
 
-    package_main(int(sys.argv[1]), int(sys.argv[2]))
+    package_main(int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]) if len(sys.argv) > 3 else 0)
 
 
 __all__ = [

@@ -61,6 +61,14 @@ class Isam2Options(StrictModel):
         ge=1,
         description="graph_process: keyframes the front end may run ahead of the graph's newest result; beyond, see graph_when_behind",
     )
+    graph_process_nice: int = Field(
+        10,
+        ge=0,
+        le=19,
+        description="graph_process: the second process's priority lowered by this much (Unix nice): where the cores are short (another program "
+        "busy on the vehicle), the front end's frames go first and the graph falls behind and merges keyframes, instead of the frames waiting "
+        "for their share of a core (docs/isam2_design.md); 0: the same priority as the front end",
+    )
     graph_when_behind: Literal["merge", "wait"] | None = Field(
         None,
         description="graph_process: what a frame due to be a keyframe does when the graph is graph_max_lag keyframes behind. merge: it is not made a "
