@@ -160,19 +160,39 @@ def test_batch_marginals_of_a_moving_chain_follow_the_adjoint():
     np.testing.assert_allclose(h, height_sigma_m(poses, expected), rtol=1e-6)
 
 
+def _refuse(*args):
+    raise RuntimeError("Indeterminant linear system detected while working near variable x1")
+
+
+def test_batch_marginals_by_qr_where_cholesky_refuses(monkeypatch, caplog):
+    """Cholesky's elimination refusing (the IMU's stiff bias walk can make its pivots fail on a
+    well-posed system): QR's gives the still chain's marginals, P0 + Q_0 + ... + Q_k (1e-6
+    relative), says so in the log, and the run counts it."""
+    rng = np.random.default_rng(0)
+    mlog, T0, P0, poses = _odometry_chain(rng, [np.eye(4)] * 6)
+    monkeypatch.setattr(batch.gtsam, "Marginals", _refuse)
+    with caplog.at_level(logging.INFO, logger="dem_graph.estimators.batch"):
+        res = _smooth(mlog, T0, P0, poses)
+    assert res.marginals_by_qr and not res.marginals_failed
+    assert "the marginals by QR instead" in caplog.text and "no marginal covariances" not in caplog.text
+    expected = P0 + np.cumsum(np.array(mlog.motion_covariance), axis=0)
+    np.testing.assert_allclose(res.pose_covariances, expected, rtol=1e-6, atol=0)
+    frames = [FrameRecord(0.1 * k, np.eye(4), np.eye(6), 0, 0, {}) for k in range(6)]
+    counted = res.apply_to(EstimatorResult("isam2-batch", frames=frames), {})
+    assert counted.counters["batch_marginals_by_qr"] == 1 and "batch_marginals_failed" not in counted.counters
+
+
 def test_batch_without_marginals_or_when_gtsam_refuses_keeps_the_online_covariances(monkeypatch, caplog):
-    """``marginals=False``: none computed. gtsam refusing (an indeterminate system): a warning, no
-    covariances, the smoothing's result kept; ``apply_to`` then leaves the online covariances and
-    counts the failure."""
+    """``marginals=False``: none computed. gtsam refusing (an indeterminate system) with Cholesky and
+    with QR: a warning, no covariances, the smoothing's result kept; ``apply_to`` then leaves the
+    online covariances and counts the failure."""
     rng = np.random.default_rng(2)
     mlog, T0, P0, poses = _odometry_chain(rng, [np.eye(4)] * 3)
     off = _smooth(mlog, T0, P0, poses, marginals=False)
     assert off.pose_covariances is None and not off.marginals_failed
 
-    def refuse(graph, values):
-        raise RuntimeError("Indeterminant linear system detected while working near variable x1")
-
-    monkeypatch.setattr(batch.gtsam, "Marginals", refuse)
+    monkeypatch.setattr(batch.gtsam, "Marginals", _refuse)
+    monkeypatch.setattr(batch, "_marginals_by_qr", _refuse)
     with caplog.at_level(logging.WARNING, logger="dem_graph.estimators.batch"):
         failed = _smooth(mlog, T0, P0, poses)
     assert failed.pose_covariances is None and failed.marginals_failed

@@ -24,8 +24,9 @@ The batch's posterior: with ``marginals`` (``batch_marginals``), each frame's po
 marginal in the final graph at the solution (:func:`pose_marginals`, ``gtsam.Marginals``), in gtsam's
 tangent order [rotation, translation] of the right perturbation in the body frame, the package's
 convention; :meth:`BatchResult.apply_to` puts it in the run's frames in place of the online pass's,
-so the run's pose NEES is the batch's own. Where gtsam cannot (an indeterminate system), a warning
-says so and the frames keep the online pass's covariances (counted as ``batch_marginals_failed``).
+so the run's pose NEES is the batch's own. Where Cholesky's elimination finds the system
+indeterminate, QR's gives them (counted as ``batch_marginals_by_qr``); where that fails too, a
+warning says so and the frames keep the online pass's covariances (``batch_marginals_failed``).
 """
 
 from __future__ import annotations
@@ -65,6 +66,7 @@ class BatchResult:
     pose_covariances: np.ndarray | None = None
     marginals_s: float = 0.0
     marginals_failed: bool = False
+    marginals_by_qr: bool = False  # Cholesky found the system indeterminate; QR's elimination gave them (pose_marginals)
 
     def apply_to(self, res: EstimatorResult, landmark_of: dict[int, int]) -> EstimatorResult:
         """The online result with the smoothed poses and points (the online poses kept as
@@ -84,6 +86,8 @@ class BatchResult:
             res.counters["batch_marginals_ms"] = round(1000 * self.marginals_s)
         if self.marginals_failed:
             res.counters["batch_marginals_failed"] = 1
+        if self.marginals_by_qr:
+            res.counters["batch_marginals_by_qr"] = 1
         return res
 
 
@@ -150,22 +154,38 @@ def _fit_landmarks_to_poses(graph: gtsam.NonlinearFactorGraph, values: gtsam.Val
     return optimizer.optimize(), optimizer.iterations()
 
 
-def pose_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]) -> np.ndarray | None:
+def _marginals_by_qr(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]) -> np.ndarray:
+    """What ``gtsam.Marginals`` gives, from a QR elimination (the same COLAMD ordering) instead of
+    Cholesky's: about twice as slow, and it takes systems Cholesky's pivots call indeterminate."""
+    linear = graph.linearize(values)
+    tree = linear.eliminateMultifrontal(gtsam.Ordering.ColamdGaussianFactorGraph(linear), gtsam.EliminateQR)
+    return np.array([tree.marginalCovariance(k) for k in keys])
+
+
+def pose_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]) -> tuple[np.ndarray | None, bool]:
     """The marginal covariance (k, 6, 6) of each pose of ``keys`` in ``graph`` linearised at
-    ``values`` (gtsam's tangent order [rotation, translation], right perturbation), symmetrised; None,
-    with a warning, when gtsam cannot factor the system (indeterminate) or a covariance is not
-    finite and positive definite."""
+    ``values`` (gtsam's tangent order [rotation, translation], right perturbation), symmetrised, and
+    whether it took the QR elimination. That is the second try, when Cholesky's finds the system
+    indeterminate: with the IMU, the biases' random walk between frames 40 ms apart (information
+    up to about 1e11, docs/imu.md) can fail its pivots on a well-posed system. None, with a warning,
+    when neither can factor the system or a covariance is not finite and positive definite."""
+    by_qr = False
     try:
         marginals = gtsam.Marginals(graph, values)
-        P = np.array([marginals.marginalCovariance(k) for k in keys]).reshape(len(keys), 6, 6)
+        P = np.array([marginals.marginalCovariance(k) for k in keys])
     except RuntimeError as exc:
-        log.warning("batch: no marginal covariances (%s): the frames keep the online pass's", one_line(exc))
-        return None
-    P = 0.5 * (P + np.swapaxes(P, 1, 2))
+        log.info("batch: Cholesky found the system indeterminate (%s): the marginals by QR instead", one_line(exc))
+        by_qr = True
+        try:
+            P = _marginals_by_qr(graph, values, keys)
+        except RuntimeError as exc_qr:
+            log.warning("batch: no marginal covariances (%s): the frames keep the online pass's", one_line(exc_qr))
+            return None, by_qr
+    P = 0.5 * (P.reshape(len(keys), 6, 6) + np.swapaxes(P.reshape(len(keys), 6, 6), 1, 2))
     if not (np.all(np.isfinite(P)) and np.all(np.linalg.eigvalsh(P)[:, 0] > 0)):
         log.warning("batch: a marginal covariance is not finite and positive definite: the frames keep the online pass's")
-        return None
-    return P
+        return None, by_qr
+    return P, by_qr
 
 
 def smooth_batch(
@@ -209,7 +229,7 @@ def smooth_batch(
     except RuntimeError as exc:
         raise DemGraphError(f"the batch optimisation failed: {one_line(exc)}") from None
     t2 = time.perf_counter()
-    pose_covariances = pose_marginals(graph, out, [X(f + 1) for f in range(mlog.n_frames)]) if marginals else None
+    pose_covariances, marginals_by_qr = pose_marginals(graph, out, [X(f + 1) for f in range(mlog.n_frames)]) if marginals else (None, False)
     t3 = time.perf_counter()
     result = BatchResult(
         poses=np.array([out.atPose3(X(f + 1)).matrix() for f in range(mlog.n_frames)]),
@@ -225,6 +245,7 @@ def smooth_batch(
         pose_covariances=pose_covariances,
         marginals_s=t3 - t2 if marginals else 0.0,
         marginals_failed=marginals and pose_covariances is None,
+        marginals_by_qr=marginals_by_qr,
     )
     if n_imu:
         log.info("batch: %d IMU factors between frames", n_imu)
