@@ -181,7 +181,8 @@ def pose_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys
         except RuntimeError as exc_qr:
             log.warning("batch: no marginal covariances (%s): the frames keep the online pass's", one_line(exc_qr))
             return None, by_qr
-    P = 0.5 * (P.reshape(len(keys), 6, 6) + np.swapaxes(P.reshape(len(keys), 6, 6), 1, 2))
+    P = P.reshape(len(keys), 6, 6)
+    P = 0.5 * (P + np.swapaxes(P, 1, 2))
     if not (np.all(np.isfinite(P)) and np.all(np.linalg.eigvalsh(P)[:, 0] > 0)):
         log.warning("batch: a marginal covariance is not finite and positive definite: the frames keep the online pass's")
         return None, by_qr

@@ -558,7 +558,7 @@ if __name__ == "__main__":
     # through the package, so the messages unpickle to the classes the worker checks against
     from dem_graph.estimators.graph_worker import main as package_main
 
-    package_main(int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]) if len(sys.argv) > 3 else 0)
+    package_main(int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]))
 
 
 __all__ = [

@@ -98,7 +98,7 @@ def normal_equations(
         if huber_k > 0.0:
             d = math.sqrt(e0 * (w00 * e0 + w01 * e1) + e1 * (w01 * e0 + w11 * e1))
             if d > huber_k:
-                weight = huber_k / max(d, 1e-12)
+                weight = huber_k / d  # (d > huber_k > 0)
                 w00, w01, w11 = w00 * weight, w01 * weight, w11 * weight
         # H^T W (6x2), then its products with H and the residual
         for p in range(6):
