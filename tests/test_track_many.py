@@ -4,7 +4,10 @@ reference it replaced: the same status, match, scores and region for every point
 ``_reference_track`` is the per-point ``PatchTracker.track`` as it was before the batched path
 (commit 96577d7), kept here as the oracle: every number it computes in Python the batched path
 computes in a compiled pass, so the two must agree exactly, on synthetic images with known
-shifts and warps and on a whole recorded run of each estimator.
+shifts and warps and on a whole recorded run of each estimator. Its score grid is the compiled
+correlation's (``ncc_grid``, which replaced ``cv2.matchTemplate``); that correlation is checked on
+its own against OpenCV and against its definition in float64 (sums over sliding windows), and the
+tracker against the reference with that definition.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import numpy as np
 import pytest
 
 from dem_graph.datasets.events import CameraFrame
-from dem_graph.frontend.match_kernel import AMBIGUOUS, LOW_SCORE, PEAK_AT_BORDER, PEAK_OUTSIDE_GATE, select_match
+from dem_graph.frontend.match_kernel import AMBIGUOUS, LOW_SCORE, PEAK_AT_BORDER, PEAK_OUTSIDE_GATE, ncc_grid, select_match
 from dem_graph.frontend.tracker import PatchTracker, TrackBatch, TrackResult, TrackStatus
 from dem_graph.pipeline import RunConfig, run_estimator
 
@@ -24,8 +27,21 @@ WIDTH_PX, HEIGHT_PX = 320, 240
 TRACKER = PatchTracker()
 
 
-def _reference_track(tracker: PatchTracker, image, template, uv_pred_px, S_px2=None, half_size_px=None) -> TrackResult:
-    """The per-point search as it was implemented before ``track_many`` (see the module doc)."""
+def _ncc_compiled(roi: np.ndarray, tpl: np.ndarray) -> np.ndarray:
+    """The tracker's correlation of one region: ``ncc_grid``'s float64 scores as float32."""
+    n_rows, n_cols = roi.shape[0] - tpl.shape[0] + 1, roi.shape[1] - tpl.shape[1] + 1
+    out = np.empty(n_rows * n_cols)
+    ncc_grid(roi, 0, 0, n_rows, n_cols, tpl, out)
+    return out.astype(np.float32).reshape(n_rows, n_cols)
+
+
+def _ncc_opencv(roi: np.ndarray, tpl: np.ndarray) -> np.ndarray:
+    return cv2.matchTemplate(roi.astype(np.float32), tpl, cv2.TM_CCOEFF_NORMED)
+
+
+def _reference_track(tracker: PatchTracker, image, template, uv_pred_px, S_px2=None, half_size_px=None, correlate=_ncc_compiled) -> TrackResult:
+    """The per-point search as it was implemented before ``track_many`` (see the module doc), the
+    score grid from ``correlate`` (region, template)."""
     img = image
     tpl = np.asarray(template, dtype=np.float32)
     uv = np.asarray(uv_pred_px, dtype=float)
@@ -58,8 +74,8 @@ def _reference_track(tracker: PatchTracker, image, template, uv_pred_px, S_px2=N
     u_lo, u_hi = max(cu - half_u - 1, ht), min(cu + half_u + 1, width - 1 - ht)
     v_lo, v_hi = max(cv - half_v - 1, ht), min(cv + half_v + 1, height - 1 - ht)
     window = img[v_lo - ht : v_hi + ht + 1, u_lo - ht : u_hi + ht + 1]
-    roi = (cv2.cvtColor(window, cv2.COLOR_BGR2GRAY) if window.ndim == 3 else window).astype(np.float32)
-    scores = cv2.matchTemplate(roi, tpl, cv2.TM_CCOEFF_NORMED)
+    roi = cv2.cvtColor(window, cv2.COLOR_BGR2GRAY) if window.ndim == 3 else window
+    scores = correlate(roi, tpl)
     i0, i1 = max(cv - half_v, v_lo) - v_lo, min(cv + half_v, v_hi) - v_lo + 1
     j0, j1 = max(cu - half_u, u_lo) - u_lo, min(cu + half_u, u_hi) - u_lo + 1
     a, b, c = S_inv if S_inv is not None else (1.0, 0.0, 1.0)
@@ -204,6 +220,61 @@ def test_track_many_equals_the_per_point_reference(seed, warped):
     # BGR images: the same as their grey
     bgr = cv2.cvtColor(B, cv2.COLOR_GRAY2BGR)
     _assert_same(TRACKER.track_many(bgr, tpl, pred, S_px2=S), _reference_track_many(TRACKER, bgr, tpl, pred, S_px2=S))
+
+
+def _ncc_float64(roi: np.ndarray, tpl: np.ndarray) -> np.ndarray:
+    """TM_CCOEFF_NORMED from its definition: zero-mean window and template, float64 sums over sliding windows."""
+    windows = np.lib.stride_tricks.sliding_window_view(roi.astype(float), tpl.shape)
+    w = windows - windows.mean(axis=(2, 3), keepdims=True)
+    t = tpl.astype(float) - tpl.mean(dtype=float)
+    return (w * t).sum(axis=(2, 3)) / np.sqrt((w**2).sum(axis=(2, 3)) * (t**2).sum())
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_compiled_correlation_is_opencvs_and_the_definitions(seed):
+    """``ncc_grid`` against its definition in float64 (to 1e-6: its scores are rounded to float32)
+    and against ``cv2.matchTemplate`` (to 5e-4: OpenCV correlates in float32, which put its scores
+    up to 2.3e-4 off the definition with the warped templates of the scenes below), on blurred-noise regions of the sizes the tracker
+    searches, textured templates and flat ones; and where OpenCV decides without dividing (a flat
+    window: 0; a flat template: 1), the same."""
+    rng = np.random.default_rng(seed)
+    A = _texture(seed)
+    for rows, cols, t in [(25, 21, 15), (17, 17, 15), (15, 15, 15), (61, 47, 15), (13, 19, 9)]:
+        for _ in range(10):
+            r0, c0 = rng.integers(0, HEIGHT_PX - rows), rng.integers(0, WIDTH_PX - cols)
+            roi = A[r0 : r0 + rows, c0 : c0 + cols]
+            tr, tc = rng.integers(0, HEIGHT_PX - t), rng.integers(0, WIDTH_PX - t)
+            tpl = (A[tr : tr + t, tc : tc + t] + rng.normal(0.0, 3.0, (t, t))).astype(np.float32)
+            got = _ncc_compiled(roi, tpl)
+            np.testing.assert_allclose(got, _ncc_float64(roi, tpl).astype(np.float32), rtol=0, atol=1e-6)
+            np.testing.assert_allclose(got, _ncc_opencv(roi, tpl), rtol=0, atol=5e-4)
+    flat_roi = np.full((25, 21), 90, dtype=np.uint8)
+    flat_roi[:, 15:] = A[:25, :6]  # flat windows on the left, textured on the right
+    tpl = A[40:55, 40:55].astype(np.float32)
+    np.testing.assert_allclose(_ncc_compiled(flat_roi, tpl), _ncc_opencv(flat_roi, tpl), rtol=0, atol=5e-4)
+    assert np.all(_ncc_compiled(flat_roi, tpl)[:, 0] == 0.0)
+    np.testing.assert_array_equal(_ncc_compiled(A[:25, :21], np.full((15, 15), 7.0, dtype=np.float32)), _ncc_opencv(A[:25, :21], np.full((15, 15), 7.0, dtype=np.float32)))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_tracker_with_the_correlations_definition(seed):
+    """The tracker against the reference with the correlation from its definition in float64
+    (``_ncc_float64``), on the scenes above (400 points each, warped templates): the same outcome
+    for every point, the scores within their float32 rounding (1e-6) and the matches within
+    1e-4 px (the sub-pixel fit divides score differences by the peak's curvature)."""
+    A, B, p, q, pred, S = _scene(seed)
+    keep, tpl = _templates(TRACKER, A, p, warp_seed=seed)
+    pred, S = pred[keep], S[keep]
+    new = TRACKER.track_many(B, tpl, pred, S_px2=S)
+
+    def with_definition(tracker, image, template, uv, S_px2=None, half_size_px=None):
+        return _reference_track(tracker, image, template, uv, S_px2, half_size_px, correlate=lambda r, t: _ncc_float64(r, t).astype(np.float32))
+
+    ref = _reference_track_many(TRACKER, B, tpl, pred, S_px2=S, track=with_definition)
+    np.testing.assert_array_equal(new.status, ref.status)
+    np.testing.assert_allclose(new.uv_px, ref.uv_px, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(new.score, ref.score, rtol=0, atol=1e-6)
+    assert new.ok.sum() > 100
 
 
 def test_track_many_recovers_known_subpixel_shifts():

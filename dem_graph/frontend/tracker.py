@@ -9,7 +9,8 @@ by the homography the ground induces between the two views when the viewpoint ch
 A :class:`Patch` stores the grey levels around a point in the image it was seen in, with a margin
 so that it can be warped; :meth:`PatchTracker.template` turns it into the template expected in the
 current image; :meth:`PatchTracker.track` finds that template by zero-mean normalised
-cross-correlation (NCC) in the gated region and refines the peak to sub-pixel (a quadratic fit of
+cross-correlation (NCC, OpenCV's ``TM_CCOEFF_NORMED``, computed by
+:func:`~dem_graph.frontend.match_kernel.ncc_grid`) in the gated region and refines the peak to sub-pixel (a quadratic fit of
 the 3x3 scores around it).
 
 Pixel convention (OpenCV): integer ``(u, v)`` is the centre of pixel column ``u``, row ``v``.
@@ -38,6 +39,8 @@ from dem_graph.frontend.match_kernel import (
     SEARCH,
     SEARCH_TOO_LARGE,
     TEXTURE_BORDERLINE,
+    ncc_grid,
+    ncc_grids,
     plan_searches,
     select_match,
     select_matches,
@@ -370,9 +373,11 @@ class PatchTracker:
         # the region's edge), clipped to where the template fits in the image
         u_lo, u_hi = max(cu - half_u - 1, ht), min(cu + half_u + 1, width - 1 - ht)
         v_lo, v_hi = max(cv - half_v - 1, ht), min(cv + half_v + 1, height - 1 - ht)
-        roi = _to_grey(img[v_lo - ht : v_hi + ht + 1, u_lo - ht : u_hi + ht + 1]).astype(np.float32)
-        scores = cv2.matchTemplate(roi, tpl, cv2.TM_CCOEFF_NORMED)  # scores[i, j]: centre (u_lo + j, v_lo + i)
-        n_rows, n_cols = scores.shape
+        roi = _to_grey(img[v_lo - ht : v_hi + ht + 1, u_lo - ht : u_hi + ht + 1])
+        n_rows, n_cols = v_hi - v_lo + 1, u_hi - u_lo + 1
+        flat = np.empty(n_rows * n_cols)
+        ncc_grid(roi, 0, 0, n_rows, n_cols, tpl, flat)
+        scores = flat.astype(np.float32).reshape(n_rows, n_cols)  # scores[i, j]: centre (u_lo + j, v_lo + i)
 
         # the region inside the computed grid: rows i0:i1, columns j0:j1
         i0, i1 = max(cv - half_v, v_lo) - v_lo, min(cv + half_v, v_hi) - v_lo + 1
@@ -417,10 +422,10 @@ class PatchTracker:
         either innovation covariances ``S_px2`` (n,2,2) or one ``half_size_px`` for all.
 
         Each point's outcome is the one :meth:`track` gives it alone, to the bit: the gates, the
-        regions and the choice of the match are two compiled passes over all the points
-        (:func:`~dem_graph.frontend.match_kernel.plan_searches`,
-        :func:`~dem_graph.frontend.match_kernel.select_matches`) around one
-        ``cv2.matchTemplate`` call per point searched.
+        regions, the correlations and the choice of the match are three compiled passes over all
+        the points (:func:`~dem_graph.frontend.match_kernel.plan_searches`,
+        :func:`~dem_graph.frontend.match_kernel.ncc_grids`,
+        :func:`~dem_graph.frontend.match_kernel.select_matches`), with no Python per point.
         """
         if (S_px2 is None) == (half_size_px is None):
             raise ValueError("give exactly one of S_px2 and half_size_px")
@@ -452,25 +457,20 @@ class PatchTracker:
             status[k] = LOW_TEXTURE if float(tpl_std[0, 0]) < cfg.min_patch_std_dn else SEARCH
 
         # one score grid per point searched: candidate centres u_lo..u_hi, v_lo..v_hi (the region
-        # plus a one-pixel ring for the sub-pixel fit, clipped to where the template fits)
-        ht = tpl.shape[1] // 2
-        searched = np.flatnonzero(status == SEARCH)
-        offsets = np.zeros(n, dtype=np.int64)
-        grids = []
-        size = 0
-        if len(searched):
-            # the grey levels as float32 once, over the box holding every region
+        # plus a one-pixel ring for the sub-pixel fit, clipped to where the template fits), all in
+        # one compiled pass
+        searched = status == SEARCH
+        if img.ndim == 2:
+            grey, u0, v0 = img, 0, 0
+        elif searched.any():  # BGR: made grey over the box holding every region only
+            ht = tpl.shape[1] // 2
             lo = box[searched, 4:8].min(axis=0) - ht
             hi = box[searched, 4:8].max(axis=0) + ht + 1
             u0, v0 = int(lo[0]), int(lo[2])
-            grey = _to_grey(img[v0 : int(hi[3]), u0 : int(hi[1])]).astype(np.float32)
-        for k, (u_lo, u_hi, v_lo, v_hi) in zip(searched.tolist(), box[searched, 4:8].tolist()):
-            roi = grey[v_lo - ht - v0 : v_hi + ht + 1 - v0, u_lo - ht - u0 : u_hi + ht + 1 - u0]
-            grid = cv2.matchTemplate(roi, tpl[k], cv2.TM_CCOEFF_NORMED)  # grid[i, j]: centre (u_lo + j, v_lo + i)
-            offsets[k] = size
-            size += grid.size
-            grids.append(grid.ravel())
-        scores = np.concatenate(grids) if grids else np.zeros(0, dtype=np.float32)
+            grey = _to_grey(img[v0 : int(hi[3]), u0 : int(hi[1])])
+        else:
+            grey, u0, v0 = np.zeros((0, 0), dtype=np.uint8), 0, 0
+        scores, offsets = ncc_grids(grey, u0, v0, tpl, status, box)
         select = np.array(
             [S_px2 is not None, cfg.min_score, cfg.exclusion_radius_px, cfg.ambiguity_margin, cfg.subpixel, cfg.refuse_peak_outside_gate], dtype=float
         )
