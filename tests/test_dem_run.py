@@ -78,10 +78,11 @@ def test_dem_command_makes_the_runs_dem_again_from_its_saved_poses(run_folder, t
     assert r.exit_code == 0, r.output
     a, b = read_dem_npz(out / "dem.npz"), read_dem_npz(again / "dem.npz")
     assert a.geometry == b.geometry
-    for name in ("elevation", "count"):
-        np.testing.assert_array_equal(a.layers[name], b.layers[name])
-    # map points' variances are stored as float32 in points.ply
-    np.testing.assert_allclose(a.layers["variance"], b.layers["variance"], rtol=1e-6)
+    np.testing.assert_array_equal(a.layers["count"], b.layers["count"])
+    # map points' variances are stored as float32 in points.ply: they weigh the heights again to
+    # float32 rounding, so a cell's elevation may land on the neighbouring float32
+    for name in ("elevation", "variance"):
+        np.testing.assert_allclose(a.layers[name], b.layers[name], rtol=1e-6)
     dem_metrics = json.loads((out / "metrics.json").read_text())["dem"]
     assert dem_metrics["covered_cells"] == int(np.isfinite(a.elevation).sum())
 
