@@ -219,6 +219,36 @@ def test_warped_template_follows_a_homography():
     assert np.median(err_plain) > 2.0 * np.median(err_warped)  # measured 0.33 px against 0.05 px
 
 
+def test_templates_are_the_bilinear_samples_of_their_region():
+    """Warped templates against bilinear interpolation by its definition (scipy's ``map_coordinates``,
+    order 1, the border repeated) at the positions their matrices give, to float32 rounding;
+    and against ``cv2.warpPerspective``, which rounds each position to 1/32 pixel: within 1/32 of
+    the region's steepest step between neighbouring pixels. Positions past the border included."""
+    from scipy.ndimage import map_coordinates
+
+    A = _texture()
+    patches = [TRACKER.make_patch(A, (100.0 + 9 * k, 80.0 + 7 * k), 0.0) for k in range(8)]
+    radius = patches[0].region.shape[0] // 2
+    rng = np.random.default_rng(4)
+    Hs = np.array([_similarity_about(p.center_px, p.center_px + rng.normal(0, 3, 2), rng.uniform(0.6, 1.4), rng.uniform(-30, 30)) for p in patches])
+    Hs[:, 2, :2] = rng.normal(0.0, 1e-3, (8, 2))  # perspective
+    M = TRACKER.template_warps(np.array([p.center_px for p in patches]), radius, Hs)
+    got = TRACKER.warp_templates(patches, M)
+    side = got.shape[1]
+    b, a = np.meshgrid(np.arange(side), np.arange(side))
+    for k, patch in enumerate(patches):
+        q = np.einsum("ij,jab->iab", M[k], np.stack([b, a, np.ones_like(a)]).astype(float))
+        x, y = q[0] / q[2], q[1] / q[2]
+        expected = map_coordinates(patch.region.astype(float), [y, x], order=1, mode="nearest")
+        np.testing.assert_allclose(got[k], expected, rtol=0, atol=1e-4)
+        region = patch.region.astype(float)
+        steepest = max(np.abs(np.diff(region, axis=0)).max(), np.abs(np.diff(region, axis=1)).max())
+        opencv = cv2.warpPerspective(patch.region_f32, M[k], (side, side), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+        assert np.abs(got[k] - opencv).max() <= steepest / 32.0
+    zoomed_out = TRACKER.warp_templates(patches[:1], np.array([[[10.0, 0.0, -40.0], [0.0, 10.0, -40.0], [0.0, 0.0, 1.0]]]))[0]
+    assert zoomed_out[0, 0] == patches[0].region_f32[0, 0] and zoomed_out[-1, -1] == patches[0].region_f32[-1, -1]  # the corners repeated
+
+
 def test_warped_template_is_centred_on_the_point_even_with_a_poor_prediction():
     # the template depends on H and the patch, not on the prediction: a prediction 5 px off
     # still finds the patch's point, not the point that happens to lie under the prediction
@@ -421,7 +451,7 @@ def test_exactly_one_search_region_must_be_given():
 
 def test_batched_homographies_match_opencv():
     """The front end's batched 4-point homographies equal OpenCV's, and degenerate sets are NaN."""
-    from dem_graph.frontend.frontend import homographies_from_4_points
+    from dem_graph.frontend.warp_kernel import homographies_from_4_points
 
     rng = np.random.default_rng(11)
     src = rng.uniform(0, 800, (20, 4, 2))
@@ -433,7 +463,48 @@ def test_batched_homographies_match_opencv():
             assert np.isnan(H[k]).all()
             continue
         expected = cv2.getPerspectiveTransform(src[k].astype(np.float32), dst[k].astype(np.float32))
-        np.testing.assert_allclose(H[k], expected, rtol=1e-3, atol=1e-6)
+        np.testing.assert_allclose(H[k], expected, rtol=1e-3, atol=1e-6)  # OpenCV's from float32 corners
+        mapped = np.c_[src[k], np.ones(4)] @ H[k].T
+        np.testing.assert_allclose(mapped[:, :2] / mapped[:, 2:], dst[k], rtol=0, atol=1e-8)  # the definition, in float64
+    src[5, 2, 0] = np.nan
+    assert np.isnan(homographies_from_4_points(src, dst)[5]).all()
+
+
+def _template_warps_numpy(centers_src_px, region_radius_px, half, H):
+    """The template warps as numpy computed them before they were compiled: inverse by LAPACK."""
+    n = len(H)
+    c_src = np.concatenate([centers_src_px, np.ones((n, 1))], axis=1)
+    finite = np.isfinite(H).all(axis=(1, 2))
+    H = np.where(finite[:, None, None], H, np.eye(3))
+    scale = np.abs(H).max(axis=(1, 2))
+    c_h = np.einsum("nij,nj->ni", H, c_src)
+    ok = finite & (np.abs(c_h[:, 2]) > 1e-12 * scale) & (np.abs(np.linalg.det(H)) > 1e-12 * scale**3)
+    H = np.where(ok[:, None, None], H, np.eye(3))
+    c_cur = c_h[:, :2] / np.where(ok, c_h[:, 2], 1.0)[:, None]
+    M = np.linalg.inv(H)
+    M[:, :, 2] += np.einsum("nij,nj->ni", M[:, :, :2], c_cur - half)
+    M[:, :2, :] += (region_radius_px - c_src[:, :2])[:, :, None] * M[:, 2:3, :]
+    M[~ok] = np.nan
+    return M
+
+
+def test_compiled_template_warps_equal_numpys():
+    """The compiled template warps against the numpy formula they replaced, on random
+    similarities with perspective, a singular homography, one sending the centre to infinity and
+    one not finite: to 1e-9 relative, NaN where numpy gave NaN."""
+    rng = np.random.default_rng(8)
+    n = 50
+    centers = rng.uniform(20, 300, (n, 2))
+    H = np.array([_similarity_about(c, c + rng.normal(0, 4, 2), rng.uniform(0.7, 1.3), rng.uniform(-20, 20)) for c in centers])
+    H[:, 2, :2] = rng.normal(0.0, 1e-3, (n, 2))
+    H[1] = np.outer([1.0, 2.0, 3.0], [1.0, 0.5, 0.2])  # singular
+    H[2, 2] = [1.0 / centers[2, 0], 0.0, -1.0]  # the centre to infinity
+    H[3, 0, 0] = np.inf
+    got = TRACKER.template_warps(centers, 20, H)
+    expected = _template_warps_numpy(centers, 20, TRACKER.config.patch_half_size_px, H)
+    assert np.isnan(got[1:4]).all() and np.array_equal(np.isnan(got), np.isnan(expected))
+    ok = ~np.isnan(expected[:, 0, 0])
+    np.testing.assert_allclose(got[ok], expected[ok], rtol=1e-9, atol=1e-9)
 
 
 def test_batched_template_warps_equal_one_at_a_time():

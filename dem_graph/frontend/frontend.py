@@ -27,6 +27,7 @@ from dem_graph.config_types import StrictModel
 from dem_graph.frontend.focus import FocusArea, FocusConfig
 from dem_graph.frontend.gap_bridge import GapBridge, GapBridgeConfig
 from dem_graph.frontend.tracker import Patch, PatchTracker, TrackBatch, TrackerConfig, TrackResult, TrackStatus
+from dem_graph.frontend.warp_kernel import homographies_from_4_points
 from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.se3 import invert, transform_points
 
@@ -67,27 +68,6 @@ class FrontendConfig(StrictModel):
         description="standard deviation of a tracked position as the estimators weight it (each frame as if independent), pixels; "
         "`dem-graph research track-noise` measures the value a camera and tracker call for (docs/isam2_design.md)",
     )
-
-
-def homographies_from_4_points(uv_src: np.ndarray, uv_dst: np.ndarray) -> np.ndarray:
-    """(n,3,3) homographies mapping 4 source points (n,4,2) onto 4 destination points, with
-    ``H[2,2] = 1``; NaN where the points are degenerate."""
-    n = len(uv_src)
-    x, y = uv_src[..., 0], uv_src[..., 1]
-    u, v = uv_dst[..., 0], uv_dst[..., 1]
-    zero, one = np.zeros_like(x), np.ones_like(x)
-    rows_u = np.stack([x, y, one, zero, zero, zero, -u * x, -u * y], axis=-1)  # (n,4,8)
-    rows_v = np.stack([zero, zero, zero, x, y, one, -v * x, -v * y], axis=-1)
-    A = np.concatenate([rows_u, rows_v], axis=1)  # (n,8,8)
-    b = np.concatenate([u, v], axis=1)  # (n,8)
-    finite = np.isfinite(A).all(axis=(1, 2)) & np.isfinite(b).all(axis=1)
-    A = np.where(finite[:, None, None], A, np.eye(8))
-    ok = finite & (np.abs(np.linalg.det(A)) > 1e-12)
-    A[~ok] = np.eye(8)
-    h = np.linalg.solve(A, np.where(ok[:, None], b, 0.0)[..., None])[..., 0]
-    H = np.concatenate([h, np.ones((n, 1))], axis=1).reshape(n, 3, 3)
-    H[~ok] = np.nan
-    return H
 
 
 @dataclass
@@ -243,11 +223,13 @@ class FrontEnd:
         :meth:`template_warps` (``warps`` None, or a matrix with NaN: the patch unwarped)."""
         tracker = self.tracker
         side = 2 * self.config.tracker.patch_half_size_px + 1
-        out = np.empty((len(point_ids), side, side), dtype=np.float32)
-        finite = np.zeros(len(point_ids), dtype=bool) if warps is None else np.isfinite(warps[:, 2, 2])
-        for k, (point_id, warped) in enumerate(zip(np.asarray(point_ids).tolist(), finite.tolist())):
-            patch = self.tracks[point_id].patch
-            out[k] = tracker.warp_template(patch, warps[k]) if warped else tracker.template(patch)
+        ids = np.asarray(point_ids, dtype=np.int64)
+        out = np.empty((len(ids), side, side), dtype=np.float32)
+        warped = np.zeros(len(ids), dtype=bool) if warps is None else np.isfinite(warps[:, 2, 2])
+        for k in np.flatnonzero(~warped).tolist():
+            out[k] = tracker.template(self.tracks[int(ids[k])].patch)
+        if warped.any():  # in one compiled pass
+            out[warped] = tracker.warp_templates([self.tracks[p].patch for p in ids[warped].tolist()], warps[warped])
         return out
 
     def track(self, image, point_id: int, template: np.ndarray, uv_pred, S_px2=None, half_size_px=None, t_s: float = 0.0, T_world_cam=None) -> TrackResult:

@@ -45,6 +45,7 @@ from dem_graph.frontend.match_kernel import (
     select_match,
     select_matches,
 )
+from dem_graph.frontend.warp_kernel import sample_templates, template_warps
 
 
 class TrackerConfig(StrictModel):
@@ -269,37 +270,25 @@ class PatchTracker:
         """(n,3,3) maps from template pixels to stored-region pixels, for :meth:`warp_template`,
         computed for ``n`` patches at once (patch centres (n,2) in their source images, homographies
         (n,3,3) from source to current image); NaN where a homography is not finite, is singular,
-        or maps the centre to infinity. See :meth:`template` for the geometry."""
-        H = np.asarray(H_src_to_cur, dtype=float)
-        n = len(H)
-        half = self.config.patch_half_size_px
-        c_src = np.concatenate([np.asarray(centers_src_px, dtype=float).reshape(n, 2), np.ones((n, 1))], axis=1)
-        finite = np.isfinite(H).all(axis=(1, 2))
-        H = np.where(finite[:, None, None], H, np.eye(3))
-        scale = np.abs(H).max(axis=(1, 2))
-        c_h = np.einsum("nij,nj->ni", H, c_src)
-        ok = finite & (np.abs(c_h[:, 2]) > 1e-12 * scale) & (np.abs(np.linalg.det(H)) > 1e-12 * scale**3)
-        H = np.where(ok[:, None, None], H, np.eye(3))
-        c_cur = c_h[:, :2] / np.where(ok, c_h[:, 2], 1.0)[:, None]
-        M = np.linalg.inv(H)  # current image -> source image
-        # template pixel (a, b) -> current image (c_cur + (a, b) - half) -> source -> region pixel
-        offset_cur = c_cur - half
-        M[:, :, 2] += np.einsum("nij,nj->ni", M[:, :, :2], offset_cur)  # M @ translation(offset_cur)
-        M[:, :2, :] += (region_radius_px - c_src[:, :2])[:, :, None] * M[:, 2:3, :]  # translation(r) @ M
-        M[~ok] = np.nan
-        return M
+        or maps the centre to infinity. See :meth:`template` for the geometry; one compiled pass
+        (:func:`~dem_graph.frontend.warp_kernel.template_warps`)."""
+        H = np.ascontiguousarray(H_src_to_cur, dtype=float).reshape(-1, 3, 3)
+        centers = np.ascontiguousarray(centers_src_px, dtype=float).reshape(len(H), 2)
+        return template_warps(centers, int(region_radius_px), self.config.patch_half_size_px, H)
 
     def warp_template(self, patch: Patch, M_region_from_template: np.ndarray) -> np.ndarray:
         """The template sampled (bilinear, border repeated) from the patch's stored region through one
         matrix of :meth:`template_warps`."""
+        return self.warp_templates([patch], np.asarray(M_region_from_template, dtype=float)[None])[0]
+
+    def warp_templates(self, patches: list[Patch], M_region_from_template: np.ndarray) -> np.ndarray:
+        """(n,t,t) float32: :meth:`warp_template` for ``n`` patches (their regions of one size) and
+        their matrices (n,3,3), in one compiled pass (:func:`~dem_graph.frontend.warp_kernel.sample_templates`)."""
         side = 2 * self.config.patch_half_size_px + 1
-        return cv2.warpPerspective(
-            patch.region_f32,
-            M_region_from_template,
-            (side, side),
-            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-            borderMode=cv2.BORDER_REPLICATE,
-        )
+        if not patches:
+            return np.zeros((0, side, side), dtype=np.float32)
+        regions = np.stack([p.region_f32 for p in patches])
+        return sample_templates(regions, np.ascontiguousarray(M_region_from_template, dtype=float), side)
 
     # ------------------------------------------------------------------ active search
 
