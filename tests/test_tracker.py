@@ -517,3 +517,29 @@ def test_batched_template_warps_equal_one_at_a_time():
         np.testing.assert_array_equal(TRACKER.warp_template(patch, M[k]), TRACKER.template(patch, Hs[k], (0.0, 0.0)))
     bad = TRACKER.template_warps(np.array([[140.0, 100.0]]), radius, np.full((1, 3, 3), np.nan))
     assert np.isnan(bad).all()
+
+
+def test_the_kernels_a_frame_runs_are_compiled_before_it():
+    """After ``compile_kernels`` a frame's tracking (batched and one point at a time, a grey and a
+    BGR image, warped templates) runs every compiled kernel with a signature it already has:
+    nothing is compiled in the first frame."""
+    from dem_graph.frontend import match_kernel, warp_kernel
+
+    kernels = [match_kernel.plan_searches, match_kernel.ncc_grids, match_kernel.ncc_grid, match_kernel.select_matches, match_kernel.select_match,
+               warp_kernel.sample_templates, warp_kernel.template_warps, warp_kernel.homographies_from_4_points]  # fmt: skip
+    tracker = PatchTracker()
+    tracker.compile_kernels()
+    warp_kernel.homographies_from_4_points(np.zeros((0, 4, 2)), np.zeros((0, 4, 2)))  # as FrontEnd does
+    before = [len(k.signatures) for k in kernels]
+    A = _texture()
+    points = _points(12, seed=5)
+    patches = [tracker.make_patch(A, p, 0.0) for p in points]
+    H = warp_kernel.homographies_from_4_points(np.random.default_rng(0).uniform(0, 300, (12, 4, 2)), np.random.default_rng(1).uniform(0, 300, (12, 4, 2)))
+    M = tracker.template_warps(np.array([p.center_px for p in patches]), patches[0].region.shape[0] // 2, np.tile(np.eye(3), (12, 1, 1)))
+    tpl = tracker.warp_templates(patches, M)
+    S = np.tile(4.0 * np.eye(2), (12, 1, 1))
+    for image in (A, cv2.cvtColor(A, cv2.COLOR_GRAY2BGR)):
+        tracker.track_many(image, tpl, points + 0.4, S_px2=S)
+        tracker.track_many(image, tpl, points + 0.4, half_size_px=3)
+        tracker.track(image, tpl[0], points[0] + 0.4, S_px2=S[0])
+    assert np.isfinite(H).any() and [len(k.signatures) for k in kernels] == before and min(before) >= 1

@@ -266,6 +266,23 @@ class PatchTracker:
             raise ValueError("H_src_to_cur is not finite, singular, or maps the patch centre to infinity")
         return self.warp_template(patch, M)
 
+    def compile_kernels(self) -> None:
+        """Run every compiled kernel of tracking once on a small image, so that numba compiles them
+        (the first run after an install, some seconds) or loads them from its cache before a run's
+        first frame rather than in it."""
+        rng = np.random.default_rng(0)
+        image = rng.integers(0, 256, (64, 64), dtype=np.uint8)
+        patch = self.make_patch(image, (32.0, 32.0), 0.0)
+        if patch is None:
+            return
+        M = self.template_warps(np.array([patch.center_px]), patch.region.shape[0] // 2, np.eye(3)[None])
+        templates = self.warp_templates([patch], M)
+        uv = np.array([[32.0, 32.0]])
+        self.track_many(image, templates, uv, S_px2=np.eye(2)[None])
+        self.track_many(image, templates, uv, half_size_px=1)
+        for img in (image, cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)):  # a grey region is a view, a BGR one a copy
+            self.track(img, templates[0], uv[0], S_px2=np.eye(2))
+
     def template_warps(self, centers_src_px: np.ndarray, region_radius_px: int, H_src_to_cur: np.ndarray) -> np.ndarray:
         """(n,3,3) maps from template pixels to stored-region pixels, for :meth:`warp_template`,
         computed for ``n`` patches at once (patch centres (n,2) in their source images, homographies
