@@ -520,9 +520,9 @@ def test_batched_template_warps_equal_one_at_a_time():
 
 
 def test_the_kernels_a_frame_runs_are_compiled_before_it():
-    """After ``compile_kernels`` a frame's tracking (batched and one point at a time, a grey and a
-    BGR image, warped templates) runs every compiled kernel with a signature it already has:
-    nothing is compiled in the first frame."""
+    """After ``compile_kernels`` a frame's tracking (batched and one point at a time; a grey image,
+    a read-only one as a ROS bag's raw images come, and a BGR one; warped templates) runs every
+    compiled kernel with a signature it already has: nothing is compiled in the first frame."""
     from dem_graph.frontend import match_kernel, warp_kernel
 
     kernels = [match_kernel.plan_searches, match_kernel.ncc_grids, match_kernel.ncc_grid, match_kernel.select_matches, match_kernel.select_match,
@@ -538,7 +538,9 @@ def test_the_kernels_a_frame_runs_are_compiled_before_it():
     M = tracker.template_warps(np.array([p.center_px for p in patches]), patches[0].region.shape[0] // 2, np.tile(np.eye(3), (12, 1, 1)))
     tpl = tracker.warp_templates(patches, M)
     S = np.tile(4.0 * np.eye(2), (12, 1, 1))
-    for image in (A, cv2.cvtColor(A, cv2.COLOR_GRAY2BGR)):
+    read_only = A.copy()
+    read_only.flags.writeable = False
+    for image in (A, read_only, cv2.cvtColor(A, cv2.COLOR_GRAY2BGR)):
         tracker.track_many(image, tpl, points + 0.4, S_px2=S)
         tracker.track_many(image, tpl, points + 0.4, half_size_px=3)
         tracker.track(image, tpl[0], points[0] + 0.4, S_px2=S[0])

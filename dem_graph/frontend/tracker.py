@@ -278,9 +278,12 @@ class PatchTracker:
         M = self.template_warps(np.array([patch.center_px]), patch.region.shape[0] // 2, np.eye(3)[None])
         templates = self.warp_templates([patch], M)
         uv = np.array([[32.0, 32.0]])
-        self.track_many(image, templates, uv, S_px2=np.eye(2)[None])
-        self.track_many(image, templates, uv, half_size_px=1)
-        for img in (image, cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)):  # a grey region is a view, a BGR one a copy
+        read_only = image.copy()
+        read_only.flags.writeable = False  # as a ROS bag's raw images come: numba types them apart
+        for img in (image, read_only):
+            self.track_many(img, templates, uv, S_px2=np.eye(2)[None])
+            self.track_many(img, templates, uv, half_size_px=1)
+        for img in (image, read_only, cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)):  # a grey region is a view, a BGR one a copy
             self.track(img, templates[0], uv[0], S_px2=np.eye(2))
 
     def template_warps(self, centers_src_px: np.ndarray, region_radius_px: int, H_src_to_cur: np.ndarray) -> np.ndarray:
