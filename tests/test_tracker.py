@@ -529,7 +529,6 @@ def test_the_kernels_a_frame_runs_are_compiled_before_it():
                warp_kernel.sample_templates, warp_kernel.template_warps, warp_kernel.homographies_from_4_points]  # fmt: skip
     tracker = PatchTracker()
     tracker.compile_kernels()
-    warp_kernel.homographies_from_4_points(np.zeros((0, 4, 2)), np.zeros((0, 4, 2)))  # as FrontEnd does
     before = [len(k.signatures) for k in kernels]
     A = _texture()
     points = _points(12, seed=5)

@@ -66,7 +66,7 @@ class BatchResult:
     pose_covariances: np.ndarray | None = None
     marginals_s: float = 0.0
     marginals_failed: bool = False
-    marginals_by_qr: bool = False  # Cholesky found the system indeterminate; QR's elimination gave them (pose_marginals)
+    marginals_by_qr: bool = False  # Cholesky found the system indeterminate and QR's elimination was tried (pose_marginals); with marginals_failed it refused too
 
     def apply_to(self, res: EstimatorResult, landmark_of: dict[int, int]) -> EstimatorResult:
         """The online result with the smoothed poses and points (the online poses kept as

@@ -172,7 +172,6 @@ class FrontEnd:
         self.T_cam_body = invert(self.T_body_cam)
         self.gap_bridge = GapBridge(self.config.gap_bridge, self.camera, self.T_body_cam, self.rig.camera.rate_hz, self.counters)
         self.tracker.compile_kernels()
-        homographies_from_4_points(np.zeros((0, 4, 2)), np.zeros((0, 4, 2)))  # compiled (or loaded) here, not in the first frame
 
     # --- frames ------------------------------------------------------------------------------
     def begin_frame(self, t_s: float, textureless: bool) -> int:

@@ -125,8 +125,8 @@ def template_warps(centers_src_px: np.ndarray, region_radius_px: int, half: int,
 def sample_templates(regions: np.ndarray, M_region_from_template: np.ndarray, side: int) -> np.ndarray:
     """(n, side, side) float32 templates: pixel (row a, column b) of template k is region k
     ((n, R, R), float32) sampled bilinearly at ``M[k] @ (b, a, 1)`` (column, row; divided by its
-    third coordinate), the region's border repeated beyond it; float64 arithmetic. A pixel whose
-    position is not finite samples the region's first pixel."""
+    third coordinate), the region's border repeated beyond it (infinitely far too); float64
+    arithmetic. A NaN position samples the region's first row or column."""
     n, height, width = regions.shape
     out = np.empty((n, side, side), dtype=np.float32)
     x_max, y_max = width - 1.0, height - 1.0
