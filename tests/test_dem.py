@@ -217,6 +217,44 @@ def test_traversability_of_a_plane_a_step_and_noise():
     assert np.isnan(th["slope_deg"][5, 5]) and th["slope_deg"][5, 6] == pytest.approx(10.0, abs=1e-3)
 
 
+def _traversability_by_least_squares(z, res, window):
+    """The layers' definition, one cell at a time: numpy's least-squares plane through the known
+    heights of each window (x east, y north, metres), the step from their range."""
+    h = window // 2
+    out = {k: np.full(z.shape, np.nan) for k in ("slope_deg", "step_height_m", "roughness_m")}
+    for r, c in np.argwhere(np.isfinite(z)):
+        rr, cc = np.mgrid[max(r - h, 0) : r + h + 1, max(c - h, 0) : c + h + 1].reshape(2, -1)
+        keep = (rr < z.shape[0]) & (cc < z.shape[1])
+        rr, cc = rr[keep], cc[keep]
+        known = np.isfinite(z[rr, cc])
+        rr, cc, zz = rr[known], cc[known], z[rr[known], cc[known]]
+        if len(zz) >= 3:
+            out["step_height_m"][r, c] = zz.max() - zz.min()
+        A = np.column_stack([np.ones(len(zz)), cc * res, -rr * res])
+        if len(zz) >= 4 and np.linalg.matrix_rank(A) == 3:
+            g, *_ = np.linalg.lstsq(A, zz, rcond=None)
+            out["slope_deg"][r, c] = np.degrees(np.arctan(np.hypot(g[1], g[2])))
+            out["roughness_m"][r, c] = np.sqrt(np.sum((zz - A @ g) ** 2) / (len(zz) - 3))
+    return out
+
+
+@pytest.mark.parametrize("window", [3, 5])
+def test_traversability_is_the_least_squares_plane_of_every_window_with_holes(window):
+    """Every cell of a rough tilted grid with half its heights missing, against the per-cell
+    least-squares definition: the same cells known (exactly 4 heights give a slope, exactly 3 a
+    step: the box filters this replaced lost some of those to rounding), values to 1e-6 in the
+    float32 layers."""
+    rng = np.random.default_rng(window)
+    z = rng.normal(0.0, 0.05, (24, 30)) + 3.0 + 0.01 * np.indices((24, 30))[1]
+    z[rng.random(z.shape) < 0.5] = np.nan
+    got = traversability(z, 0.1, window)
+    want = _traversability_by_least_squares(z, 0.1, window)
+    for key, expected in want.items():
+        assert np.array_equal(np.isnan(got[key]), np.isnan(expected)), key
+        np.testing.assert_allclose(got[key], expected, atol=1e-4 if key == "slope_deg" else 1e-6, rtol=1e-6, err_msg=key)
+    assert np.isfinite(got["slope_deg"]).sum() > 100
+
+
 # --- views -----------------------------------------------------------------------------------
 
 

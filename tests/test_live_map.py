@@ -235,3 +235,26 @@ def test_a_scan_of_the_wrong_length_is_refused_in_one_line():
     live = LiveMap(rig)
     with pytest.raises(DemGraphError, match="beams"):
         live.add_scan(0.0, np.ones(5), np.eye(4), np.eye(6) * 1e-6)
+
+
+def test_the_traversability_kernel_is_compiled_before_the_first_local_map(monkeypatch):
+    """Making a live map runs the traversability kernel once, with the signature a local map then
+    uses: nothing is compiled in the first frame. A fresh dispatcher of the same kernel, so that no
+    other test's call counts. The local map's slope is that of its own elevation."""
+    import numba
+
+    from dem_graph.dem import traversability as trav
+
+    fresh = numba.njit(nogil=True)(trav._layers.py_func)
+    monkeypatch.setattr(trav, "_layers", fresh)
+    rig, track, t_scan, ranges, _ = _mapped()
+    live = LiveMap(rig, NO_GATE)
+    assert len(fresh.signatures) == 1
+    for t, r in zip(t_scan, ranges, strict=True):
+        T, P = track.at(np.array([t]))
+        live.add_scan(t, r, T[0], P[0])
+    local = live.local(track.T_world_body[-1], (1.0, 6.0), 2.5, float(t_scan[-1]))
+    assert len(fresh.signatures) == 1
+    slope = local.layers["slope_deg"]
+    assert np.isfinite(slope).sum() > 50
+    np.testing.assert_array_equal(slope, trav.traversability(local.elevation, 0.1)["slope_deg"])

@@ -113,3 +113,23 @@ def test_the_compiled_normal_equations_are_the_projections_ones(robust):
     assert used == ok.sum() == len(X) - 4
     np.testing.assert_allclose(A, A_ref, rtol=1e-9, atol=1e-9 * np.abs(A_ref).max())
     np.testing.assert_allclose(b, b_ref, rtol=1e-9, atol=1e-9 * np.abs(b_ref).max())
+
+
+def test_the_pose_kernel_a_frame_runs_is_compiled_before_it(monkeypatch):
+    """After ``compile_kernel`` (run when an :class:`OnlineFilter` is made) a frame's pose update,
+    robust or not, runs the compiled loop with the signature it already has: nothing is compiled in
+    the first frame. A fresh dispatcher of the same loop, so that no other test's call counts."""
+    import numba
+
+    from dem_graph.estimators import pose_kernel, pose_update
+
+    fresh = numba.njit(nogil=True)(pose_kernel.normal_equations.py_func)
+    monkeypatch.setattr(pose_kernel, "normal_equations", fresh)
+    monkeypatch.setattr(pose_update, "normal_equations", fresh)
+    pose_kernel.compile_kernel()
+    assert len(fresh.signatures) == 1
+    rig, T_true, X = _scene(np.random.default_rng(3))
+    for robust in (True, False):
+        T, _ = update_pose(T_true, 1e-4 * np.eye(6), X, np.zeros((len(X), 3, 3)), _pixels(rig, T_true, X), rig.camera_model, rig.T_body_cam, 1.0, robust=robust)
+    assert len(fresh.signatures) == 1
+    assert np.abs(local(T_true, T)).max() < 1e-9

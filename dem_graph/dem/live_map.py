@@ -30,6 +30,7 @@ from dem_graph.dem.incremental import IncrementalDem, Placed
 from dem_graph.dem.layers import Dem
 from dem_graph.dem.returns import GroundReturns, ReturnSource, place_returns, returns_in_body
 from dem_graph.dem.traversability import add_traversability
+from dem_graph.dem.traversability import compile_kernel as compile_traversability
 from dem_graph.dem.views import local_frame, local_to_world_xy
 from dem_graph.errors import DemGraphError
 from dem_graph.geometry.grid import GridGeometry
@@ -79,6 +80,7 @@ class LiveMap:
         self._log: deque[_LoggedScan] = deque()
         self.n_beams = len(rig.laser.beam_directions())
         self.counters = {"scans": 0, "returns": 0, "returns_moved": 0, "scans_moved": 0, "revisions": 0, "map_points": 0}
+        compile_traversability()  # before the first local map, not in it
 
     # --- measurements ------------------------------------------------------------------------
     def add_scan(self, t_s: float, ranges_m: np.ndarray, T_world_body: np.ndarray, covariance: np.ndarray) -> int:

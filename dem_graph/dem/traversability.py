@@ -8,13 +8,15 @@ Over the ``window`` x ``window`` cells centred on each cell (the cells with a he
   freedom), metres: 0 on any plane, whatever its slope.
 
 A cell without a height, or with fewer than 4 heights in its window (3 for the step), gets NaN.
-Every sum is a box filter over the grid (``scipy.ndimage``): no loop over cells.
+One compiled pass over the cells (numba), each window's sums taken about its centre cell.
 """
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
-from scipy import ndimage
 
 from dem_graph.dem.layers import Dem
 from dem_graph.errors import DemGraphError
@@ -26,39 +28,80 @@ def traversability(elevation: np.ndarray, resolution_m: float, window: int = 3) 
     """Slope, step height and roughness of a (rows, cols) elevation array (NaN: unknown)."""
     if window < 3 or window % 2 == 0:
         raise DemGraphError(f"the traversability window must be an odd number of cells >= 3, got {window}")
-    z = np.asarray(elevation, dtype=float)
-    known = np.isfinite(z)
-    rows, cols = np.indices(z.shape, dtype=float)
-    # plane z = c0 + gx * x + gy * y, x east (columns), y north (rows upward), metres; the sums are
-    # centred on each window's means before solving
-    x = cols * resolution_m
-    y = -rows * resolution_m
-    z0 = float(np.median(z[known])) if np.any(known) else 0.0
-    zz = np.where(known, z - z0, 0.0)  # an offset keeps the sums of squares well conditioned
-    # every window sum in one filter pass over the stacked terms (unknown cells count 0)
-    terms = np.stack([np.ones_like(z), x, y, x * x, y * y, x * y, zz, x * zz, y * zz, zz * zz])
-    terms *= known
-    sums = ndimage.uniform_filter(terms, size=(1, window, window), mode="constant") * (window * window)
-    n, sx, sy, sxx, syy, sxy, sz, sxz, syz, szz = sums
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mx, my, mz = sx / n, sy / n, sz / n
-        cxx = sxx - n * mx * mx
-        cyy = syy - n * my * my
-        cxy = sxy - n * mx * my
-        cxz = sxz - n * mx * mz
-        cyz = syz - n * my * mz
-        czz = szz - n * mz * mz
-        det = cxx * cyy - cxy * cxy
-        ok = known & (n >= 4) & (det > 1e-12 * resolution_m**4)
-        gx = np.where(ok, (cyy * cxz - cxy * cyz) / det, np.nan)
-        gy = np.where(ok, (cxx * cyz - cxy * cxz) / det, np.nan)
-        sse = np.maximum(czz - gx * cxz - gy * cyz, 0.0)
-        roughness = np.where(ok, np.sqrt(sse / np.maximum(n - 3, 1)), np.nan)
-    slope = np.degrees(np.arctan(np.hypot(gx, gy)))
-    hi = ndimage.maximum_filter(np.where(known, z, -np.inf), size=window, mode="constant", cval=-np.inf)
-    lo = ndimage.minimum_filter(np.where(known, z, np.inf), size=window, mode="constant", cval=np.inf)
-    step = np.where(known & (n >= 3), hi - lo, np.nan)
-    return {"slope_deg": slope.astype(np.float32), "step_height_m": step.astype(np.float32), "roughness_m": roughness.astype(np.float32)}
+    z = np.ascontiguousarray(elevation, dtype=float)
+    if z.ndim != 2:
+        raise DemGraphError(f"the traversability needs a (rows, cols) elevation array, got shape {z.shape}")
+    slope, step, roughness = _layers(z, float(resolution_m), int(window))
+    return {"slope_deg": slope, "step_height_m": step, "roughness_m": roughness}
+
+
+@numba.njit(cache=True, nogil=True)
+def _layers(z: np.ndarray, resolution_m: float, window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The three layers (float32) cell by cell. Within each window, positions are taken from the
+    window's centre cell (x east along the columns, y north up the rows, metres) and heights from
+    its height, so the sums stay well conditioned wherever the grid lies; the plane is then solved
+    about the window's means."""
+    rows, cols = z.shape
+    half = window // 2
+    slope = np.full((rows, cols), np.nan, dtype=np.float32)
+    step = np.full((rows, cols), np.nan, dtype=np.float32)
+    roughness = np.full((rows, cols), np.nan, dtype=np.float32)
+    det_min = 1e-12 * resolution_m**4
+    for r in range(rows):
+        for c in range(cols):
+            z_c = z[r, c]
+            if not np.isfinite(z_c):
+                continue
+            n = 0.0
+            sx = sy = sxx = syy = sxy = sz = sxz = syz = szz = 0.0
+            hi = -np.inf
+            lo = np.inf
+            for rr in range(max(r - half, 0), min(r + half + 1, rows)):
+                y = (r - rr) * resolution_m
+                for cc in range(max(c - half, 0), min(c + half + 1, cols)):
+                    zz = z[rr, cc]
+                    if not np.isfinite(zz):
+                        continue
+                    hi = max(hi, zz)
+                    lo = min(lo, zz)
+                    x = (cc - c) * resolution_m
+                    d = zz - z_c
+                    n += 1.0
+                    sx += x
+                    sy += y
+                    sxx += x * x
+                    syy += y * y
+                    sxy += x * y
+                    sz += d
+                    sxz += x * d
+                    syz += y * d
+                    szz += d * d
+            if n >= 3:
+                step[r, c] = hi - lo
+            if n < 4:
+                continue
+            mx, my, mz = sx / n, sy / n, sz / n
+            cxx = sxx - n * mx * mx
+            cyy = syy - n * my * my
+            cxy = sxy - n * mx * my
+            cxz = sxz - n * mx * mz
+            cyz = syz - n * my * mz
+            czz = szz - n * mz * mz
+            det = cxx * cyy - cxy * cxy
+            if not det > det_min:
+                continue
+            gx = (cyy * cxz - cxy * cyz) / det
+            gy = (cxx * cyz - cxy * cxz) / det
+            sse = max(czz - gx * cxz - gy * cyz, 0.0)
+            roughness[r, c] = math.sqrt(sse / max(n - 3.0, 1.0))
+            slope[r, c] = math.degrees(math.atan(math.hypot(gx, gy)))
+    return slope, step, roughness
+
+
+def compile_kernel() -> None:
+    """Run the compiled layers once on a small grid, so that numba compiles them (the first run after
+    an install) or loads them from its cache before a live run's first frame rather than in it."""
+    traversability(np.zeros((3, 3)), 0.1)
 
 
 def add_traversability(dem: Dem, window: int = 3) -> Dem:
@@ -67,4 +110,4 @@ def add_traversability(dem: Dem, window: int = 3) -> Dem:
     return dem
 
 
-__all__ = ["TRAVERSABILITY_LAYERS", "add_traversability", "traversability"]
+__all__ = ["TRAVERSABILITY_LAYERS", "add_traversability", "compile_kernel", "traversability"]

@@ -20,6 +20,7 @@ import numpy as np
 from dem_graph.estimators.false_matches import FalseMatches
 from dem_graph.estimators.isam2_config import Isam2Config
 from dem_graph.estimators.live_points import LivePoints
+from dem_graph.estimators.pose_kernel import compile_kernel as compile_pose_kernel
 from dem_graph.estimators.pose_update import project_with_jacobians, update_pose
 from dem_graph.frontend.frontend import FrontEnd, NewPoint
 from dem_graph.frontend.pose_history import PoseHistory
@@ -83,6 +84,7 @@ class OnlineFilter:
         self.v_body[3] = config.motion.initial_speed_mps
         self._speed_mps: float | None = None
         self._false_matches = FalseMatches(config.false_matches, frontend.counters)
+        compile_pose_kernel()  # before the first frame, not in it
 
     # --- one frame ---------------------------------------------------------------------------
     def predict(self, U: np.ndarray, Q: np.ndarray, A: np.ndarray | None = None) -> np.ndarray:

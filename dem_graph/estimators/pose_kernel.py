@@ -116,4 +116,12 @@ def camera_intrinsics(camera) -> np.ndarray:
     return np.array([camera.fx_px, camera.fy_px, camera.cx_px, camera.cy_px, *camera.distortion], dtype=float)
 
 
-__all__ = ["camera_intrinsics", "normal_equations"]
+def compile_kernel() -> None:
+    """Run :func:`normal_equations` once on one point, so that numba compiles it (about 2 s the
+    first run after an install) or loads it from its cache before a run's first frame rather than
+    in it."""
+    eye = np.eye(3)
+    normal_equations(eye, np.zeros(3), np.array([[0.0, 0.0, 5.0]]), np.zeros((1, 3, 3)), np.zeros((1, 2)), eye, np.zeros(3), np.array([500.0, 500.0, 0.0, 0.0, 0, 0, 0, 0, 0]), 1.0, 1.345)
+
+
+__all__ = ["camera_intrinsics", "compile_kernel", "normal_equations"]
