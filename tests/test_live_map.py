@@ -77,6 +77,30 @@ def test_after_random_additions_removals_and_revisions_the_grid_equals_the_batch
     _assert_same_map(grid, everything, NO_GATE)
 
 
+def test_batches_far_apart_and_cells_never_measured():
+    """Batches whose points lie 100 m apart (their tiles looked up one by one, not as a box)
+    and batches around the origin (negative cells) give the batch fusion; a cell of a tile never
+    made samples as unknown, with zero counts and no time."""
+    rng = np.random.default_rng(11)
+    grid = IncrementalDem(NO_GATE, tile_cells=8)
+    held = []
+    for step in range(60):
+        batch = _random_batch(rng, 30, step)
+        if step % 3 == 0:  # a third of each such batch 100 m east and 60 m south
+            far = np.zeros_like(batch.xyz_m)
+            far[:10] = [100.0, -60.0, 0.0]
+            batch = GroundReturns(batch.xyz_m + far, batch.var_z_m2, batch.t_s, batch.source)
+        held.append((batch, grid.add(batch)))
+        if step % 4 == 3:
+            grid.remove(held.pop(int(rng.integers(len(held))))[1])
+    everything = GroundReturns.concatenate([b for b, _ in held])
+    rows, cols, _ = grid.covering_geometry().cell_index(everything.xyz_m[:, 0], everything.xyz_m[:, 1])
+    assert np.ptp(cols) > 950  # the map does span both places
+    _assert_same_map(grid, everything, NO_GATE)
+    unknown = grid.sample(np.array([50.0, -0.05]), np.array([-30.0, 1e4]))
+    assert np.all(np.isnan(unknown["elevation"])) and np.all(unknown["count"] == 0) and np.all(np.isnan(unknown["last_update_s"]))
+
+
 def test_removing_everything_leaves_exact_zeros():
     rng = np.random.default_rng(5)
     grid = IncrementalDem(NO_GATE)

@@ -41,6 +41,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from dem_graph.dem.fusion import FusionConfig
+from dem_graph.dem.grid_kernel import add_batch, compile_kernels, remove_batch
 from dem_graph.dem.layers import Dem
 from dem_graph.dem.returns import GroundReturns, ReturnSource
 from dem_graph.errors import DemGraphError
@@ -103,6 +104,7 @@ class IncrementalDem:
         self._t0: float | None = None  # times are stored as t - _t0, _t0 a second before the first: 0 is "never"
         self.n_kept = 0  # measurements in the sums now
         self.n_rejected = 0  # measurements held as outliers now
+        compile_kernels()  # before the first measurement, not with it
 
     # --- cells and tiles ---------------------------------------------------------------------
     @property
@@ -128,10 +130,20 @@ class IncrementalDem:
         T = self.tile_cells
         tx, ty = ix // T, iy // T
         slot = (iy - ty * T) * T + (ix - tx * T)
-        key = tx * (1 << 32) + (ty & 0xFFFFFFFF)
-        if len(key) and key.min() == key.max():  # the usual batch: one tile
-            row = np.full(len(key), self._row((int(tx[0]), int(ty[0])), create), dtype=np.int64)
-        else:
+        if len(tx) == 0:
+            return np.zeros(0, dtype=np.int64)
+        tx0, ty0 = int(tx.min()), int(ty.min())
+        nx, ny = int(tx.max()) - tx0 + 1, int(ty.max()) - ty0 + 1
+        if nx * ny <= 4 * len(tx) + 64:  # the usual batch (a scan, a local map, the whole map): its tiles' box, looked up once each
+            box = np.array([self._tile_row.get((tx0 + a, ty0 + b), -1) for a in range(nx) for b in range(ny)], dtype=np.int64)
+            at = (tx - tx0) * ny + (ty - ty0)
+            row = box[at]
+            if create and np.any(row < 0):
+                for k in np.unique(at[row < 0]):
+                    box[k] = self._new_tile((tx0 + int(k) // ny, ty0 + int(k) % ny))
+                row = box[at]
+        else:  # a few measurements far apart: their tiles one by one
+            key = tx * (1 << 32) + (ty & 0xFFFFFFFF)
             _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
             rows = np.array([self._row((int(tx[i]), int(ty[i])), create) for i in first], dtype=np.int64)
             row = rows[inverse.reshape(-1)]
@@ -172,42 +184,18 @@ class IncrementalDem:
         c = self.config
         var = np.maximum(var, c.min_variance_m2)
         w = 1.0 / var
-        z = xyz[:, 2]
+        z = np.ascontiguousarray(xyz[:, 2])  # the compiled loop's arrays are contiguous: one signature
         wz = w * z
         ix, iy = self.cell_of(xyz[:, 0], xyz[:, 1])
         flat = self._flat(ix, iy, create=True)
-        W, N = self._sums[0, flat], self._counts[0, flat]
-        kept = N < self.gate_min_count
-        if not np.all(kept):
-            with np.errstate(invalid="ignore", divide="ignore"):
-                d = z - self._sums[1, flat] / W
-                kept |= d * d <= c.gate_sigma**2 * (var + 1.0 / W + c.gate_floor_m**2)
-        self._accumulate(flat, w, wz, laser, kept, sign=1.0)
         if self._t0 is None:
             self._t0 = float(t.min()) - 1.0
-        np.maximum.at(self._counts[3], flat[kept], np.maximum(t[kept] - self._t0, 1e-3).astype(np.float32))  # an earlier time than the first's: as the first's
+        t_rel = np.maximum(t - self._t0, 1e-3).astype(np.float32)  # an earlier time than the first's: as the first's
+        kept = add_batch(self._sums, self._counts, flat, w, wz, z, var, t_rel, laser, float(self.gate_min_count), c.gate_sigma**2, c.gate_floor_m**2)
         n_kept = int(kept.sum())
         self.n_kept += n_kept
         self.n_rejected += len(kept) - n_kept
         return Placed(ix, iy, w, wz, laser, kept)
-
-    def _accumulate(self, flat: np.ndarray, w: np.ndarray, wz: np.ndarray, laser: np.ndarray, kept: np.ndarray, sign: float) -> np.ndarray:
-        """Add (``sign`` 1) or subtract (-1) the measurements' terms to their cells; returns the cells touched."""
-        kw = kept.astype(float)
-        sums, counts = self._sums, self._counts
-        lo, hi = int(flat.min()), int(flat.max())
-        if hi - lo < 8 * self.tile_cells**2:  # a few tiles made one after the other: sums over the span, no sort
-            index, m = flat - lo, hi - lo + 1
-            cells = slice(lo, hi + 1)
-        else:
-            cells, index = np.unique(flat, return_inverse=True)
-            index, m = index.reshape(-1), len(cells)
-        sums[0, cells] += sign * np.bincount(index, weights=w * kw, minlength=m)
-        sums[1, cells] += sign * np.bincount(index, weights=wz * kw, minlength=m)
-        counts[0, cells] += sign * np.bincount(index, weights=kw, minlength=m)
-        counts[1, cells] += sign * np.bincount(index, weights=kw * laser, minlength=m)
-        counts[2, cells] += sign * np.bincount(index, weights=1.0 - kw, minlength=m)
-        return np.arange(lo, hi + 1)[np.bincount(index, minlength=m) > 0] if isinstance(cells, slice) else cells
 
     def remove(self, placed: Placed) -> None:
         """Take back a batch :meth:`add` placed (exactly what it added)."""
@@ -216,10 +204,7 @@ class IncrementalDem:
         flat = self._flat(placed.ix, placed.iy, create=False)
         if np.any(flat < 0):
             raise DemGraphError("removing measurements from a tile that holds none")
-        cells = self._accumulate(flat, placed.w, placed.wz, placed.laser, placed.kept, sign=-1.0)
-        emptied = cells[self._counts[0, cells] <= 0.5]  # counts are whole numbers: no measurement left, whatever the rounding
-        self._sums[:, emptied] = 0.0
-        self._counts[:2, emptied] = 0.0
+        remove_batch(self._sums, self._counts, flat, placed.w, placed.wz, placed.laser, placed.kept)
         n_kept = int(placed.kept.sum())
         self.n_kept -= n_kept
         self.n_rejected -= len(placed) - n_kept
@@ -250,9 +235,11 @@ class IncrementalDem:
         if len(ix) and self.n_tiles:
             flat = self._flat(ix, iy, create=False)
             known = flat >= 0
-            f = flat[known]
-            sums[:2, known] = self._sums[:, f]
-            sums[2:, known] = self._counts[:, f]
+            f = np.where(known, flat, 0)  # a cell of a tile not made reads cell 0, then zeros
+            np.take(self._sums, f, axis=1, out=sums[:2])
+            sums[2:] = np.take(self._counts, f, axis=1)
+            if not np.all(known):
+                sums[:, ~known] = 0.0
         return {k: v.reshape(shape) for k, v in self._layers_from_sums(sums).items()}
 
     def covering_geometry(self) -> GridGeometry:
