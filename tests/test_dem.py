@@ -132,6 +132,39 @@ def test_a_returns_height_variance_matches_monte_carlo_through_pose_and_range_no
     np.testing.assert_allclose(ret.xyz_m[:, 2], z.mean(axis=0), atol=0.01)
 
 
+def test_placing_returns_with_a_pose_each_one_for_all_or_by_index_is_the_array_formula():
+    """The compiled placement against the module's equations written with numpy (position R p + t;
+    variance J P J^T + (a . d)^2 sigma_r^2, J = [p x a, a], a = R^T e_z), to 1e-12 relative, in its
+    three call forms; indices that point past the poses are refused."""
+    from dem_graph.dem.returns import place_returns
+
+    rng = np.random.default_rng(8)
+    n, m = 50, 4
+    poses = np.array([retract(make_pose(rotation_from_rpy(*rng.normal(0, 0.2, 3)), rng.normal(0, 5, 3)), np.zeros(6)) for _ in range(m)])
+    L = rng.normal(0, 0.05, (m, 6, 6))
+    P = L @ np.swapaxes(L, 1, 2) + 1e-6 * np.eye(6)
+    p_body = rng.uniform(-3, 3, (n, 3))
+    d_body = rng.normal(size=(n, 3))
+    d_body /= np.linalg.norm(d_body, axis=1, keepdims=True)
+    pose_of = rng.integers(0, m, n)
+
+    def formula(T, C):
+        R = T[:, :3, :3]
+        a = R[:, 2, :]
+        J = np.concatenate([np.cross(p_body, a), a], axis=1)
+        return np.einsum("nij,nj->ni", R, p_body) + T[:, :3, 3], np.einsum("ni,nij,nj->n", J, C, J) + (np.einsum("ni,ni->n", a, d_body) * RANGE_SIGMA_M) ** 2
+
+    for got, want in (
+        (place_returns(p_body, d_body, poses[pose_of], P[pose_of], RANGE_SIGMA_M), formula(poses[pose_of], P[pose_of])),
+        (place_returns(p_body, d_body, poses[:1], P[:1], RANGE_SIGMA_M), formula(np.repeat(poses[:1], n, 0), np.repeat(P[:1], n, 0))),
+        (place_returns(p_body, d_body, poses, P, RANGE_SIGMA_M, pose_of=pose_of), formula(poses[pose_of], P[pose_of])),
+    ):
+        np.testing.assert_allclose(got[0], want[0], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(got[1], want[1], rtol=1e-12)
+    with pytest.raises(DemGraphError, match="disagree"):
+        place_returns(p_body, d_body, poses, P, RANGE_SIGMA_M, pose_of=pose_of + m)
+
+
 def test_returns_outside_the_track_and_without_a_return_are_left_out():
     rig = default_rig()
     track = PoseTrack(np.array([0.0, 1.0]), np.stack([np.eye(4)] * 2), np.zeros((2, 6, 6)))

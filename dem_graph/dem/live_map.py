@@ -28,6 +28,7 @@ import numpy as np
 from dem_graph.dem.fusion import FusionConfig
 from dem_graph.dem.incremental import IncrementalDem, Placed
 from dem_graph.dem.layers import Dem
+from dem_graph.dem.place_kernel import compile_kernel as compile_placement
 from dem_graph.dem.returns import GroundReturns, ReturnSource, place_returns, returns_in_body
 from dem_graph.dem.traversability import add_traversability
 from dem_graph.dem.traversability import compile_kernel as compile_traversability
@@ -81,6 +82,7 @@ class LiveMap:
         self.n_beams = len(rig.laser.beam_directions())
         self.counters = {"scans": 0, "returns": 0, "returns_moved": 0, "scans_moved": 0, "revisions": 0, "map_points": 0}
         compile_traversability()  # before the first local map, not in it
+        compile_placement()  # before the first scan, not with it
 
     # --- measurements ------------------------------------------------------------------------
     def add_scan(self, t_s: float, ranges_m: np.ndarray, T_world_body: np.ndarray, covariance: np.ndarray) -> int:
@@ -144,11 +146,9 @@ class LiveMap:
         self.grid.remove(Placed.concatenate([s.placed for s in moved]))
         sizes = np.array([len(s.p_body) for s in moved])
         scan_of = np.repeat(np.arange(len(moved)), sizes)
-        T = T_new[index][scan_of]
-        P = P_new[index][scan_of]
         p_body = np.concatenate([s.p_body for s in moved])
         d_body = np.concatenate([s.d_body for s in moved])
-        xyz, var = place_returns(p_body, d_body, T, P, self.rig.laser.range_sigma_m)
+        xyz, var = place_returns(p_body, d_body, T_new[index], P_new[index], self.rig.laser.range_sigma_m, pose_of=scan_of)
         t = np.repeat([s.t_s for s in moved], sizes)
         ok = np.all(np.isfinite(xyz), axis=1) & np.isfinite(var)
         if not np.all(ok):  # a pose with NaN in it: those scans leave the map rather than land anywhere

@@ -22,6 +22,7 @@ from functools import cached_property
 
 import numpy as np
 
+from dem_graph.dem.place_kernel import place
 from dem_graph.errors import DemGraphError
 from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.trajectory import Trajectory
@@ -125,24 +126,23 @@ def returns_in_body(ranges_m: np.ndarray, beam_idx: np.ndarray, rig: SensorRig) 
     return np.asarray(ranges_m, dtype=float)[:, None] * d_body + T_body_laser[:3, 3], d_body
 
 
-def place_returns(p_body: np.ndarray, d_body: np.ndarray, T_world_body: np.ndarray, P: np.ndarray, range_sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """World positions (N,3) and height variances (N,) of body-frame returns, each placed with its
-    pose (N,4,4) and pose covariance (N,6,6), or all with one (1,4,4), (1,6,6) (the module's equations)."""
-    if len(T_world_body) == 1:  # one scan's returns: one pose for all
-        R, t = T_world_body[0, :3, :3], T_world_body[0, :3, 3]
-        xyz = p_body @ R.T + t
-        a = R[2, :]
-        J = np.concatenate([np.cross(p_body, a), np.broadcast_to(a, p_body.shape)], axis=1)
-        var_pose = np.einsum("ni,ij,nj->n", J, P[0], J)
-        var_range = ((d_body @ a) * range_sigma_m) ** 2
-        return xyz, var_pose + var_range
-    R = T_world_body[:, :3, :3]
-    xyz = np.einsum("nij,nj->ni", R, p_body) + T_world_body[:, :3, 3]
-    a = R[:, 2, :]  # world up in the body frame (rows of R^T e_z)
-    J = np.concatenate([np.cross(p_body, a), a], axis=1)
-    var_pose = np.einsum("ni,nij,nj->n", J, P, J)
-    var_range = (np.einsum("ni,ni->n", a, d_body) * range_sigma_m) ** 2
-    return xyz, var_pose + var_range
+def place_returns(
+    p_body: np.ndarray, d_body: np.ndarray, T_world_body: np.ndarray, P: np.ndarray, range_sigma_m: float, pose_of: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """World positions (N,3) and height variances (N,) of body-frame returns (N,3) with their beam
+    directions (N,3) (the module's equations). Each is placed with its pose (N,4,4) and pose
+    covariance (N,6,6), or all with one (1,4,4), (1,6,6); or, given ``pose_of`` (N,), return i
+    with pose ``pose_of[i]`` of (M,4,4), (M,6,6). One compiled loop
+    (:func:`~dem_graph.dem.place_kernel.place`)."""
+    T = np.ascontiguousarray(T_world_body, dtype=float).reshape(-1, 4, 4)
+    P = np.ascontiguousarray(P, dtype=float).reshape(-1, 6, 6)
+    p = np.ascontiguousarray(p_body, dtype=float).reshape(-1, 3)
+    if pose_of is None:
+        pose_of = np.zeros(len(p), dtype=np.int64) if len(T) == 1 else np.arange(len(p), dtype=np.int64)
+    pose_of = np.ascontiguousarray(pose_of, dtype=np.int64)
+    if len(pose_of) != len(p) or len(T) != len(P) or (len(pose_of) and (pose_of.min() < 0 or pose_of.max() >= len(T))):
+        raise DemGraphError(f"placing {len(p)} returns with {len(T)} poses, {len(P)} covariances and {len(pose_of)} pose indices: they disagree")
+    return place(p, np.ascontiguousarray(d_body, dtype=float).reshape(-1, 3), T, P, pose_of, float(range_sigma_m))
 
 
 def laser_returns_world(scan_t_s: np.ndarray, ranges_m: np.ndarray, rig: SensorRig, poses: PoseTrack) -> GroundReturns:
@@ -174,7 +174,7 @@ def laser_returns_world(scan_t_s: np.ndarray, ranges_m: np.ndarray, rig: SensorR
     # index of each valid return's scan among the scans in span
     span_pos = np.cumsum(in_span) - 1
     p_body, d_body = returns_in_body(ranges_m[scan_idx, beam_idx], beam_idx, rig)
-    xyz, var = place_returns(p_body, d_body, T_scan[span_pos[scan_idx]], P_scan[span_pos[scan_idx]], laser.range_sigma_m)
+    xyz, var = place_returns(p_body, d_body, T_scan, P_scan, laser.range_sigma_m, pose_of=span_pos[scan_idx])
     return GroundReturns(xyz, var, scan_t_s[scan_idx], np.full(len(var), ReturnSource.LASER_RETURN, dtype=np.uint8))
 
 
