@@ -470,6 +470,35 @@ def test_batched_homographies_match_opencv():
     assert np.isnan(homographies_from_4_points(src, dst)[5]).all()
 
 
+def test_ground_homographies_map_the_ground_squares_corners_between_the_views():
+    """Each point's homography takes its ground square's corners, projected into the source view,
+    onto the same corners projected into the current one (PinholeCamera.project, with distortion),
+    to 1e-6 px; a point with a corner behind either camera gets NaN."""
+    from dem_graph.frontend.warp_kernel import ground_homographies
+    from dem_graph.geometry.camera import PinholeCamera
+    from dem_graph.geometry.se3 import invert, make_pose, rotation_from_rpy
+
+    camera = PinholeCamera(800, 600, 610.0, 605.0, 401.5, 298.0, (-0.28, 0.09, 1e-3, -5e-4, -0.01))
+    rng = np.random.default_rng(4)
+    down = rotation_from_rpy(-np.pi / 2 - 0.3, 0.0, -np.pi / 2)  # looking ahead along +x, pitched down
+    n, half_m = 40, 0.15
+    T_now = make_pose(down, [0.0, 0.0, 1.2])
+    T_source = np.array([make_pose(down @ rotation_from_rpy(*rng.normal(0, 0.03, 3)), [rng.uniform(-1.0, 0.0), rng.normal(0, 0.1), 1.2 + rng.normal(0, 0.02)]) for _ in range(n)])
+    X = np.column_stack([rng.uniform(2.5, 6.0, n), rng.uniform(-1.5, 1.5, n), rng.normal(0, 0.05, n)])
+    X[7, 0] = -3.0  # behind both cameras
+    H = ground_homographies(X, T_source, T_now, camera.intrinsics_array, half_m)
+    corners = X[:, None, :] + np.array([[-half_m, -half_m, 0], [half_m, -half_m, 0], [half_m, half_m, 0], [-half_m, half_m, 0]])
+    for k in range(n):
+        if k == 7:
+            assert np.isnan(H[k]).all()
+            continue
+        uv0, f0 = camera.project(corners[k] @ invert(T_source[k])[:3, :3].T + invert(T_source[k])[:3, 3])
+        uv1, f1 = camera.project(corners[k] @ invert(T_now)[:3, :3].T + invert(T_now)[:3, 3])
+        assert f0.all() and f1.all()
+        mapped = np.c_[uv0, np.ones(4)] @ H[k].T
+        np.testing.assert_allclose(mapped[:, :2] / mapped[:, 2:], uv1, rtol=0, atol=1e-6)
+
+
 def _template_warps_numpy(centers_src_px, region_radius_px, half, H):
     """The template warps as numpy computed them before they were compiled: inverse by LAPACK."""
     n = len(H)
@@ -526,7 +555,7 @@ def test_the_kernels_a_frame_runs_are_compiled_before_it():
     from dem_graph.frontend import match_kernel, warp_kernel
 
     kernels = [match_kernel.plan_searches, match_kernel.ncc_grids, match_kernel.ncc_grid, match_kernel.select_matches, match_kernel.select_match,
-               warp_kernel.sample_templates, warp_kernel.template_warps, warp_kernel.homographies_from_4_points]  # fmt: skip
+               warp_kernel.sample_templates, warp_kernel.template_warps, warp_kernel.homographies_from_4_points, warp_kernel.ground_homographies]  # fmt: skip
     tracker = PatchTracker()
     tracker.compile_kernels()
     before = [len(k.signatures) for k in kernels]
@@ -534,6 +563,7 @@ def test_the_kernels_a_frame_runs_are_compiled_before_it():
     points = _points(12, seed=5)
     patches = [tracker.make_patch(A, p, 0.0) for p in points]
     H = warp_kernel.homographies_from_4_points(np.random.default_rng(0).uniform(0, 300, (12, 4, 2)), np.random.default_rng(1).uniform(0, 300, (12, 4, 2)))
+    warp_kernel.ground_homographies(np.full((12, 3), 3.0), np.array([np.eye(4)] * 12), np.eye(4), np.array([500.0, 500.0, 0, 0, 0, 0, 0, 0, 0]), 0.15)  # as FrontEnd.template_warps
     M = tracker.template_warps(np.array([p.center_px for p in patches]), patches[0].region.shape[0] // 2, np.tile(np.eye(3), (12, 1, 1)))
     tpl = tracker.warp_templates(patches, M)
     S = np.tile(4.0 * np.eye(2), (12, 1, 1))

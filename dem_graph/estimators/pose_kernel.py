@@ -113,7 +113,7 @@ def normal_equations(
 
 def camera_intrinsics(camera) -> np.ndarray:
     """``fx, fy, cx, cy, k1, k2, p1, p2, k3`` of a :class:`~dem_graph.geometry.camera.PinholeCamera`, for :func:`normal_equations`."""
-    return np.array([camera.fx_px, camera.fy_px, camera.cx_px, camera.cy_px, *camera.distortion], dtype=float)
+    return camera.intrinsics_array
 
 
 def compile_kernel() -> None:

@@ -27,7 +27,7 @@ from dem_graph.config_types import StrictModel
 from dem_graph.frontend.focus import FocusArea, FocusConfig
 from dem_graph.frontend.gap_bridge import GapBridge, GapBridgeConfig
 from dem_graph.frontend.tracker import Patch, PatchTracker, TrackBatch, TrackerConfig, TrackResult, TrackStatus
-from dem_graph.frontend.warp_kernel import homographies_from_4_points
+from dem_graph.frontend.warp_kernel import ground_homographies
 from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.se3 import invert, transform_points
 
@@ -204,17 +204,10 @@ class FrontEnd:
             return None
         if n == 0:
             return np.zeros((0, 3, 3))
-        offsets = np.array([[-half_m, -half_m, 0.0], [half_m, -half_m, 0.0], [half_m, half_m, 0.0], [-half_m, half_m, 0.0]])
-        corners = X_world[:, None, :] + offsets[None]  # (n,4,3)
         tracks = [self.tracks[int(p)] for p in point_ids]
-        T_cam0_world = invert(np.array([t.T_world_cam_source for t in tracks]))  # (n,4,4)
-        c0 = np.einsum("nij,nkj->nki", T_cam0_world[:, :3, :3], corners) + T_cam0_world[:, None, :3, 3]
-        T_cam1_world = invert(T_world_cam)
-        c1 = corners @ T_cam1_world[:3, :3].T + T_cam1_world[:3, 3]
-        uv0, f0 = self.camera.project(c0.reshape(-1, 3))
-        uv1, f1 = self.camera.project(c1.reshape(-1, 3))
-        H = homographies_from_4_points(uv0.reshape(n, 4, 2), uv1.reshape(n, 4, 2))
-        H[~(f0 & f1).reshape(n, 4).all(axis=1)] = np.nan
+        T_source = np.array([t.T_world_cam_source for t in tracks], dtype=float)
+        X = np.ascontiguousarray(X_world, dtype=float).reshape(n, 3)
+        H = ground_homographies(X, T_source, np.ascontiguousarray(T_world_cam, dtype=float), self.camera.intrinsics_array, float(half_m))
         centers = np.array([t.patch.center_px for t in tracks])
         radius = tracks[0].patch.region.shape[0] // 2
         return self.tracker.template_warps(centers, radius, H)

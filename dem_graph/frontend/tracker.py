@@ -45,7 +45,7 @@ from dem_graph.frontend.match_kernel import (
     select_match,
     select_matches,
 )
-from dem_graph.frontend.warp_kernel import homographies_from_4_points, sample_templates, template_warps
+from dem_graph.frontend.warp_kernel import ground_homographies, homographies_from_4_points, sample_templates, template_warps
 
 
 class TrackerConfig(StrictModel):
@@ -285,7 +285,8 @@ class PatchTracker:
             self.track_many(img, templates, uv, half_size_px=1)
         for img in (image, read_only, cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)):  # a grey region is a view, a BGR one a copy
             self.track(img, templates[0], uv[0], S_px2=np.eye(2))
-        homographies_from_4_points(np.zeros((0, 4, 2)), np.zeros((0, 4, 2)))  # the front end's template warps
+        homographies_from_4_points(np.zeros((0, 4, 2)), np.zeros((0, 4, 2)))
+        ground_homographies(np.zeros((0, 3)), np.zeros((0, 4, 4)), np.eye(4), np.zeros(9), 0.15)  # the front end's template warps
 
     def template_warps(self, centers_src_px: np.ndarray, region_radius_px: int, H_src_to_cur: np.ndarray) -> np.ndarray:
         """(n,3,3) maps from template pixels to stored-region pixels, for :meth:`warp_template`,

@@ -70,6 +70,48 @@ def homographies_from_4_points(uv_src: np.ndarray, uv_dst: np.ndarray) -> np.nda
 
 
 @numba.njit(cache=True, nogil=True)
+def ground_homographies(X_world: np.ndarray, T_world_cam_source: np.ndarray, T_world_cam: np.ndarray, intrinsics: np.ndarray, half_m: float) -> np.ndarray:
+    """(n,3,3) homographies from each point's source view to the current one, induced by the
+    horizontal ground square of side ``2 half_m`` centred on the point (``X_world`` (n,3)): its
+    corners seen from the source camera ``T_world_cam_source`` (n,4,4) and from the current one
+    ``T_world_cam`` (4,4), projected through ``intrinsics`` (fx, fy, cx, cy, k1, k2, p1, p2, k3: OpenCV's
+    distortion, as :meth:`~dem_graph.geometry.camera.PinholeCamera.project`), then
+    :func:`homographies_from_4_points`. NaN where a corner is not in front of either camera."""
+    n = X_world.shape[0]
+    uv = np.empty((2, n, 4, 2))
+    front = np.ones(n, dtype=np.bool_)
+    dx = (-half_m, half_m, half_m, -half_m)
+    dy = (-half_m, -half_m, half_m, half_m)
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    k1, k2, p1, p2, k3 = intrinsics[4], intrinsics[5], intrinsics[6], intrinsics[7], intrinsics[8]
+    for k in range(n):
+        for view in range(2):
+            T = T_world_cam_source[k] if view == 0 else T_world_cam
+            for i in range(4):
+                # the corner in the camera: R^T (X - t)
+                wx, wy, wz = X_world[k, 0] + dx[i] - T[0, 3], X_world[k, 1] + dy[i] - T[1, 3], X_world[k, 2] - T[2, 3]
+                px = T[0, 0] * wx + T[1, 0] * wy + T[2, 0] * wz
+                py = T[0, 1] * wx + T[1, 1] * wy + T[2, 1] * wz
+                pz = T[0, 2] * wx + T[1, 2] * wy + T[2, 2] * wz
+                if not pz > 1e-9:
+                    front[k] = False
+                    uv[view, k, i, 0] = uv[view, k, i, 1] = np.nan
+                    continue
+                x, y = px / pz, py / pz
+                r2 = x * x + y * y
+                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+                yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+                uv[view, k, i, 0] = fx * xd + cx
+                uv[view, k, i, 1] = fy * yd + cy
+    H = homographies_from_4_points(uv[0], uv[1])
+    for k in range(n):
+        if not front[k]:
+            H[k, :, :] = np.nan
+    return H
+
+
+@numba.njit(cache=True, nogil=True)
 def template_warps(centers_src_px: np.ndarray, region_radius_px: int, half: int, H_src_to_cur: np.ndarray) -> np.ndarray:
     """(n,3,3) maps from template pixels to stored-region pixels: template pixel (b, a) is the
     current image's ``c_cur + (b, a) - half``, where ``c_cur`` is the patch centre ``c`` (n,2,
@@ -160,4 +202,4 @@ def sample_templates(regions: np.ndarray, M_region_from_template: np.ndarray, si
     return out
 
 
-__all__ = ["homographies_from_4_points", "sample_templates", "template_warps"]
+__all__ = ["ground_homographies", "homographies_from_4_points", "sample_templates", "template_warps"]

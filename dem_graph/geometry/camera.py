@@ -31,6 +31,11 @@ class PinholeCamera:
         return np.asarray(self.distortion, dtype=float)
 
     @property
+    def intrinsics_array(self) -> np.ndarray:
+        """``fx, fy, cx, cy, k1, k2, p1, p2, k3`` (pixels; OpenCV's distortion), for the compiled kernels."""
+        return np.array([self.fx_px, self.fy_px, self.cx_px, self.cy_px, *self.distortion], dtype=float)
+
+    @property
     def has_distortion(self) -> bool:
         return bool(np.any(self.dist_coeffs != 0.0))
 
