@@ -130,11 +130,12 @@ def _start(args, tmp_path):
 def test_a_signal_ends_the_run_between_frames_and_keeps_it(smoke_folder, tmp_path, full_run, sig):
     run, _ = full_run
     out = tmp_path / "run"
-    p = _start(["run", str(smoke_folder), "--estimator", "ptpm", "--realtime", "--out", str(out)], tmp_path)
+    (tmp_path / "checkpoints.yaml").write_text("checkpoint_every_s: 0.2\n")
+    p = _start(["run", str(smoke_folder), "--estimator", "ptpm", "--realtime", "--config", str(tmp_path / "checkpoints.yaml"), "--out", str(out)], tmp_path)
     deadline = time.monotonic() + 60
-    while not (out / "config.yaml").is_file() and time.monotonic() < deadline:  # the run has started
+    while not (out / "trajectory.tum").is_file() and time.monotonic() < deadline:  # the first checkpoint: frames are being estimated
         time.sleep(0.05)
-    time.sleep(1.0)  # about 25 frames of the 64, fed at the camera's rate
+    time.sleep(0.5)  # about 12 frames more of the 64, fed at the camera's rate
     p.send_signal(sig)
     stdout, stderr = p.communicate(timeout=60)
     assert "Traceback" not in stderr
@@ -145,6 +146,15 @@ def test_a_signal_ends_the_run_between_frames_and_keeps_it(smoke_folder, tmp_pat
     saved = read_tum(out / "trajectory.tum")  # the frames done, exactly as an uninterrupted run made them
     np.testing.assert_allclose(saved.positions_xyz, run.estimator.trajectory().positions_xyz[:n], atol=1e-9)
     assert (out / "dem.tif").is_file() and (out / "live_map.tif").is_file()
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+def test_a_signal_while_the_estimator_starts_stops_the_run_before_its_first_frame(smoke_log):
+    """A SIGTERM while the estimator is being made (its kernels loaded, a graph process started: a
+    second or more) stops the run at its first event, said so, instead of killing the process."""
+    run = run_estimator(smoke_log, RunConfig(estimator="ptpm"), with_dem=False, instrument=lambda _: os.kill(os.getpid(), signal.SIGTERM))
+    assert run.interrupted and run.error == "interrupted after 0 frames (SIGTERM)" and len(run.estimator.frames) == 0
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the handler the process had is back
 
 
 def test_an_isam2_batch_stopped_early_says_it_is_the_online_pass(smoke_log):

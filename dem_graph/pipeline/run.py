@@ -121,34 +121,37 @@ def run_estimator(
     have the dataset's own run settings under it); None: the defaults with the dataset's settings,
     as ``dem-graph run`` would without options."""
     config = with_dataset_speed(sequence, config or run_config(sequence))
-    pipeline = LivePipeline.for_sequence(sequence, config, strict_order=True)
-    if instrument is not None:
-        instrument(pipeline)
-    live = LiveRun.attach(pipeline, sequence.ground_truth, config.local_error)
-    shown = ViewerListener(pipeline, viewer, sequence.ground_truth) if viewer is not None else None
-    if shown is not None:
-        pipeline.listeners.append(shown)
-    checkpoint = RunCheckpoint(pipeline, checkpoint_dir, config.checkpoint_every_s) if checkpoint_dir is not None else None
-    if checkpoint is not None:
-        pipeline.listeners.append(checkpoint)
-    start = time.perf_counter()
-    error, interrupted = None, False
-    frames = 0
-    try:
-        with threadpool_limits(limits=config.blas_threads, user_api="blas"), stop_at_event_boundaries() as stop:
-            for frames in feed(pipeline, sequence, config.max_frames, realtime=config.realtime, stop=stop):  # noqa: B007 - read in the handler below
-                pass
-    except DemGraphError as exc:
-        error = str(exc)
-        log.error("run stopped after %d frames: %s", frames, exc)
-    except KeyboardInterrupt as exc:
-        interrupted = True
-        error = f"interrupted after {frames} frames ({str(exc) or 'Ctrl-C'})"
-        log.error("run %s: keeping what was done", error)
-    except Exception as exc:  # noqa: BLE001 - a fault late in a long run must not lose the run
-        error = f"stopped after {frames} frames by an internal error: {type(exc).__name__}: {one_line(exc)}"
-        log.error("run %s (please report it; -vv shows where)", error)
-        log.debug("internal error", exc_info=True)
+    # a Ctrl-C or SIGTERM while the estimator starts (its kernels loaded, its graph process started)
+    # stops the run at its first event, as one during the run does at the next
+    with stop_at_event_boundaries() as stop:
+        pipeline = LivePipeline.for_sequence(sequence, config, strict_order=True)
+        if instrument is not None:
+            instrument(pipeline)
+        live = LiveRun.attach(pipeline, sequence.ground_truth, config.local_error)
+        shown = ViewerListener(pipeline, viewer, sequence.ground_truth) if viewer is not None else None
+        if shown is not None:
+            pipeline.listeners.append(shown)
+        checkpoint = RunCheckpoint(pipeline, checkpoint_dir, config.checkpoint_every_s) if checkpoint_dir is not None else None
+        if checkpoint is not None:
+            pipeline.listeners.append(checkpoint)
+        start = time.perf_counter()
+        error, interrupted = None, False
+        frames = 0
+        try:
+            with threadpool_limits(limits=config.blas_threads, user_api="blas"):
+                for frames in feed(pipeline, sequence, config.max_frames, realtime=config.realtime, stop=stop):  # noqa: B007 - read in the handler below
+                    pass
+        except DemGraphError as exc:
+            error = str(exc)
+            log.error("run stopped after %d frames: %s", frames, exc)
+        except KeyboardInterrupt as exc:
+            interrupted = True
+            error = f"interrupted after {frames} frames ({str(exc) or 'Ctrl-C'})"
+            log.error("run %s: keeping what was done", error)
+        except Exception as exc:  # noqa: BLE001 - a fault late in a long run must not lose the run
+            error = f"stopped after {frames} frames by an internal error: {type(exc).__name__}: {one_line(exc)}"
+            log.error("run %s (please report it; -vv shows where)", error)
+            log.debug("internal error", exc_info=True)
     if shown is not None:
         shown.close()
     try:
