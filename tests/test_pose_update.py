@@ -81,7 +81,7 @@ def test_the_compiled_normal_equations_are_the_projections_ones(robust):
     equations of the numpy formulation (project_with_jacobians, R_i = sigma^2 I + H_x Sigma H_x^T,
     Huber weights, sum H^T W H and H^T W r) to 1e-9 relative, with lens distortion, points behind
     the camera and pixels that are NaN left out, and outliers in the Huber kernel's linear part."""
-    from dem_graph.estimators.pose_kernel import camera_intrinsics, normal_equations
+    from dem_graph.estimators.pose_kernel import normal_equations
     from dem_graph.estimators.pose_update import HUBER_K, project_with_jacobians
     from dem_graph.geometry.camera import PinholeCamera
 
@@ -109,7 +109,7 @@ def test_the_compiled_normal_equations_are_the_projections_ones(robust):
     HtW = np.swapaxes(Hp[ok], 1, 2) @ W
     A_ref, b_ref = np.einsum("nij,njk->ik", HtW, Hp[ok]), np.einsum("nij,nj->i", HtW, r)
     T_cam_body = invert(rig.T_body_cam)
-    A, b, used = normal_equations(T[:3, :3].copy(), T[:3, 3].copy(), X, Sigma, z, T_cam_body[:3, :3].copy(), T_cam_body[:3, 3].copy(), camera_intrinsics(cam), sigma_px, HUBER_K if robust else 0.0)
+    A, b, used = normal_equations(T[:3, :3].copy(), T[:3, 3].copy(), X, Sigma, z, T_cam_body[:3, :3].copy(), T_cam_body[:3, 3].copy(), cam.intrinsics_array, sigma_px, HUBER_K if robust else 0.0)
     assert used == ok.sum() == len(X) - 4
     np.testing.assert_allclose(A, A_ref, rtol=1e-9, atol=1e-9 * np.abs(A_ref).max())
     np.testing.assert_allclose(b, b_ref, rtol=1e-9, atol=1e-9 * np.abs(b_ref).max())

@@ -111,11 +111,6 @@ def normal_equations(
     return A, b, used
 
 
-def camera_intrinsics(camera) -> np.ndarray:
-    """``fx, fy, cx, cy, k1, k2, p1, p2, k3`` of a :class:`~dem_graph.geometry.camera.PinholeCamera`, for :func:`normal_equations`."""
-    return camera.intrinsics_array
-
-
 def compile_kernel() -> None:
     """Run :func:`normal_equations` once on one point, so that numba compiles it (about 2 s the
     first run after an install) or loads it from its cache before a run's first frame rather than
@@ -124,4 +119,4 @@ def compile_kernel() -> None:
     normal_equations(eye, np.zeros(3), np.array([[0.0, 0.0, 5.0]]), np.zeros((1, 3, 3)), np.zeros((1, 2)), eye, np.zeros(3), np.array([500.0, 500.0, 0.0, 0.0, 0, 0, 0, 0, 0]), 1.0, 1.345)
 
 
-__all__ = ["camera_intrinsics", "compile_kernel", "normal_equations"]
+__all__ = ["compile_kernel", "normal_equations"]

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dem_graph.estimators.pose_kernel import camera_intrinsics, normal_equations
+from dem_graph.estimators.pose_kernel import normal_equations
 from dem_graph.geometry.camera import PinholeCamera
 from dem_graph.geometry.lie import local, retract, skew
 from dem_graph.geometry.se3 import invert
@@ -57,7 +57,7 @@ def update_pose(
     T = np.array(T_world_body_prior, dtype=float)
     T_cam_body = invert(T_body_cam)
     R_cam_body, t_cam_body = np.ascontiguousarray(T_cam_body[:3, :3]), np.ascontiguousarray(T_cam_body[:3, 3])
-    intrinsics = camera_intrinsics(camera)
+    intrinsics = camera.intrinsics_array
     X, Sig, z = np.ascontiguousarray(X), np.ascontiguousarray(Sig), np.ascontiguousarray(z)
     for _ in range(max(iterations, 1)):
         # the points' terms (pixels, Jacobians, innovation covariances, Huber weights) in one compiled loop

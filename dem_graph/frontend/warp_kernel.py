@@ -76,10 +76,10 @@ def ground_homographies(X_world: np.ndarray, T_world_cam_source: np.ndarray, T_w
     corners seen from the source camera ``T_world_cam_source`` (n,4,4) and from the current one
     ``T_world_cam`` (4,4), projected through ``intrinsics`` (fx, fy, cx, cy, k1, k2, p1, p2, k3: OpenCV's
     distortion, as :meth:`~dem_graph.geometry.camera.PinholeCamera.project`), then
-    :func:`homographies_from_4_points`. NaN where a corner is not in front of either camera."""
+    :func:`homographies_from_4_points`. NaN where a corner is not in front of either camera (its
+    pixel is NaN, which the solve refuses)."""
     n = X_world.shape[0]
     uv = np.empty((2, n, 4, 2))
-    front = np.ones(n, dtype=np.bool_)
     dx = (-half_m, half_m, half_m, -half_m)
     dy = (-half_m, -half_m, half_m, half_m)
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
@@ -94,7 +94,6 @@ def ground_homographies(X_world: np.ndarray, T_world_cam_source: np.ndarray, T_w
                 py = T[0, 1] * wx + T[1, 1] * wy + T[2, 1] * wz
                 pz = T[0, 2] * wx + T[1, 2] * wy + T[2, 2] * wz
                 if not pz > 1e-9:
-                    front[k] = False
                     uv[view, k, i, 0] = uv[view, k, i, 1] = np.nan
                     continue
                 x, y = px / pz, py / pz
@@ -104,11 +103,7 @@ def ground_homographies(X_world: np.ndarray, T_world_cam_source: np.ndarray, T_w
                 yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
                 uv[view, k, i, 0] = fx * xd + cx
                 uv[view, k, i, 1] = fy * yd + cy
-    H = homographies_from_4_points(uv[0], uv[1])
-    for k in range(n):
-        if not front[k]:
-            H[k, :, :] = np.nan
-    return H
+    return homographies_from_4_points(uv[0], uv[1])
 
 
 @numba.njit(cache=True, nogil=True)
