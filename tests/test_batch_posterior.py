@@ -136,10 +136,12 @@ def test_batch_marginals_of_a_moving_chain_follow_the_adjoint():
     """Odometry only, turning and climbing: ``X_k = X_(k-1) U_k`` with right perturbations gives
     ``P_k = Ad(U_k^-1) P_(k-1) Ad(U_k^-1)^T + Q_k`` exactly (the chain has no loop, the measurements
     agree, so the linearisation at the solution is this propagation): 1e-6 relative, per element
-    against sqrt(P_ii P_jj)."""
+    against sqrt(P_ii P_jj). 60 frames: the marginals are taken in chunks of consecutive poses
+    (``MARGINAL_CHUNK``), and the chain spans more than two."""
     rng = np.random.default_rng(1)
     motions = []
-    for _ in range(8):
+    assert 60 > 2 * batch.MARGINAL_CHUNK
+    for _ in range(60):
         U = np.eye(4)
         U[:3, :3] = so3_exp(rng.normal(scale=0.1, size=3))
         U[:3, 3] = [1.0, 0.1, 0.05] + rng.normal(scale=0.05, size=3)

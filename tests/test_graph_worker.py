@@ -20,7 +20,14 @@ import pytest
 
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators import keyframe_graph
-from dem_graph.estimators.graph_worker import GraphWorker, InProcessGraph, KeyframeMessage, ProcessGraph, RestartMessage
+from dem_graph.estimators.graph_worker import (
+    DelayedProcessGraph,
+    GraphWorker,
+    InProcessGraph,
+    KeyframeMessage,
+    ProcessGraph,
+    RestartMessage,
+)
 from dem_graph.estimators.isam2_config import Isam2Config
 from dem_graph.geometry.se3 import make_pose, rotation_from_rpy, transform_points
 from dem_graph.pipeline import RunConfig, run_estimator
@@ -406,9 +413,38 @@ def test_an_in_process_graph_can_hand_its_results_back_late(recorded):
             np.testing.assert_array_equal(r.poses[k], want.poses[k])
 
 
-def test_a_delay_for_a_graph_in_a_second_process_is_refused():
-    with pytest.raises(ValueError, match="graph_delay_keyframes holds back the results of the graph in this process"):
-        RunConfig.model_validate({"estimator": "isam2", "isam2": {"graph_process": True, "graph_delay_keyframes": 3}})
+def test_a_delayed_second_process_hands_back_what_this_one_would(recorded):
+    """``graph_delay_keyframes`` with ``graph_process``: the second process takes one message at a
+    time and each result is handed back exactly ``delay`` messages late, waited for when not back:
+    the keyframes at the calls the in-process graph with that delay gives them, the numbers to the bit."""
+    setup, messages, expected = recorded
+    assert Isam2Config(graph_process=True, graph_delay_keyframes=3).graph_placement == (True, 3)
+    graph = DelayedProcessGraph(setup, delay=3)
+    try:
+        got = []
+        for i, message in enumerate(messages[:12]):
+            graph.send(message)
+            back = graph.results()
+            assert [r.k for r in back] == ([] if i < 3 else [expected[i - 3].k])
+            got += back
+        assert graph.results() == []  # nothing more is due until the next message
+        pending, _ = graph.finish()
+        got += pending
+        assert graph.results() == []
+    finally:
+        graph.close()
+    assert [r.k for r in got] == [r.k for r in expected[:12]]
+    for r, want in zip(got, expected):
+        assert sorted(r.points) == sorted(want.points)
+        for k in want.poses:
+            np.testing.assert_array_equal(r.poses[k], want.poses[k])
+        for j in want.points:
+            np.testing.assert_array_equal(r.points[j], want.points[j])
+
+
+def test_a_delayed_graph_needs_a_delay():
+    with pytest.raises(ValueError, match="at least one keyframe"):
+        DelayedProcessGraph(None, delay=0)
 
 
 @pytest.fixture(scope="module")

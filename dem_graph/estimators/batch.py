@@ -41,6 +41,7 @@ from gtsam.symbol_shorthand import B, L, V, X
 
 from dem_graph.errors import DemGraphError, one_line
 from dem_graph.estimators.base import ONLINE_TRAJECTORY, EstimatorResult
+from dem_graph.estimators.batch_start import fit_landmarks
 from dem_graph.estimators.graph_factors import ProjectionFactors, calibration, link_factor, odometry_factor, seed_factors
 from dem_graph.estimators.imu_preintegration import bias_sigmas, preintegrate, preintegration_params
 from dem_graph.estimators.measurement_log import MeasurementLog
@@ -141,17 +142,49 @@ def build_graph(mlog: MeasurementLog, rig: SensorRig, T0: np.ndarray, P0: np.nda
     return graph
 
 
-def _fit_landmarks_to_poses(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_poses: int, params) -> tuple[gtsam.Values, int]:
-    """``values`` with the landmarks moved to their best fit to the poses ``X(0) .. X(n_poses - 1)``,
-    which are held where they are; and the iterations it took."""
+def _fit_landmarks_to_poses(
+    mlog: MeasurementLog, rig: SensorRig, T0: np.ndarray, poses: np.ndarray, points: dict[int, np.ndarray], landmarks: list[int], sigma_px: float, robust: bool
+) -> tuple[dict[int, np.ndarray], int]:
+    """Each landmark moved to its best fit to the start's poses, held (:func:`~dem_graph.estimators.batch_start.fit_landmarks`),
+    and the iterations it took."""
+    row = {lm: i for i, lm in enumerate(landmarks)}
+    T_world_body = np.concatenate([np.asarray(T0, dtype=float)[None], np.asarray(poses, dtype=float)])  # X(0), then X(f + 1)
+    frames, obs_landmarks, uv = mlog.observations()
+    links = np.array([(row[a], row[b]) for a, b, _ in mlog.links], dtype=np.int64).reshape(-1, 2)
+    X, iterations = fit_landmarks(
+        np.array([points[lm] for lm in landmarks], dtype=float).reshape(-1, 3), T_world_body,
+        frames + 1, np.array([row[lm] for lm in obs_landmarks.tolist()], dtype=np.int64), uv, sigma_px, rig.camera_model, rig.T_body_cam,
+        np.asarray(mlog.seed_frame, dtype=np.int64) + 1, np.array([row[lm] for lm in mlog.seed_landmark], dtype=np.int64),
+        np.array([s.p_body for s in mlog.seeds], dtype=float).reshape(-1, 3), np.array([s.Sigma_body for s in mlog.seeds], dtype=float).reshape(-1, 3, 3),
+        links, np.array([sigma for _, _, sigma in mlog.links], dtype=float), robust=robust,
+    )  # fmt: skip
+    return dict(zip(landmarks, X)), iterations
+
+
+def _fit_to_held_poses(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, params) -> gtsam.Values:
+    """The variables of ``graph`` other than its poses (the IMU's velocities and biases), moved to
+    their best fit with every pose held where ``values`` has it."""
     held = gtsam.NonlinearFactorGraph(graph)
+    start = gtsam.Values()
     # a prior of 1 um and 1 urad, not a hard constraint: Levenberg-Marquardt's damping would move a
     # NonlinearEquality's pose and make its error infinite
     pin = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
-    for k in range(n_poses):
-        held.add(gtsam.PriorFactorPose3(X(k), values.atPose3(X(k)), pin))
-    optimizer = gtsam.LevenbergMarquardtOptimizer(held, values, params)
-    return optimizer.optimize(), optimizer.iterations()
+    for key in graph.keyVector():
+        if gtsam.Symbol(key).chr() == ord("x"):
+            held.add(gtsam.PriorFactorPose3(key, values.atPose3(key), pin))
+            start.insert(key, values.atPose3(key))
+        elif gtsam.Symbol(key).chr() == ord("v"):
+            start.insert(key, values.atVector(key))
+        else:
+            start.insert(key, values.atConstantBias(key))
+    fitted = gtsam.LevenbergMarquardtOptimizer(held, start, params).optimize()
+    out = gtsam.Values()
+    for key in graph.keyVector():
+        if gtsam.Symbol(key).chr() == ord("v"):
+            out.insert(key, fitted.atVector(key))
+        elif gtsam.Symbol(key).chr() == ord("b"):
+            out.insert(key, fitted.atConstantBias(key))
+    return out
 
 
 def _marginals_by_qr(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]) -> np.ndarray:
@@ -160,6 +193,16 @@ def _marginals_by_qr(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, ke
     linear = graph.linearize(values)
     tree = linear.eliminateMultifrontal(gtsam.Ordering.ColamdGaussianFactorGraph(linear), gtsam.EliminateQR)
     return np.array([tree.marginalCovariance(k) for k in keys])
+
+
+# poses whose marginals are asked for together: one joint marginal of 25 consecutive poses costs about
+# what two single ones do (each walks the Bayes tree to its root), so the 1669 frames of `paper` take
+# 1.2 s instead of 7.5 s; the covariances agree to 1e-6 of their sigmas (docs/isam2_design.md)
+MARGINAL_CHUNK = 25
+
+
+def _chunks(items: list, size: int) -> list[list]:
+    return [items[i : i + size] for i in range(0, len(items), size)]
 
 
 def pose_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]) -> tuple[np.ndarray | None, bool]:
@@ -172,7 +215,7 @@ def pose_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys
     by_qr = False
     try:
         marginals = gtsam.Marginals(graph, values)
-        P = np.array([marginals.marginalCovariance(k) for k in keys])
+        P = np.array([joint.at(k, k) for chunk in _chunks(keys, MARGINAL_CHUNK) for joint in [marginals.jointMarginalCovariance(gtsam.KeyVector(chunk))] for k in chunk])
     except RuntimeError as exc:
         log.info("batch: Cholesky found the system indeterminate (%s): the marginals by QR instead", one_line(exc))
         by_qr = True
@@ -216,15 +259,22 @@ def smooth_batch(
     landmarks = set(mlog.seed_landmark) | {after for _, after, _ in mlog.links}
     for lm in landmarks:
         values.insert(L(lm), gtsam.Point3(*points_init[lm]))
-    n_imu = add_imu_factors(graph, values, mlog, imu, np.asarray(poses_init), sigma_v0_mps) if imu is not None else 0
+    imu_graph = gtsam.NonlinearFactorGraph()
+    n_imu = add_imu_factors(imu_graph, values, mlog, imu, np.asarray(poses_init), sigma_v0_mps) if imu is not None else 0
+    graph.push_back(imu_graph)
     t1 = time.perf_counter()
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(relative_error_tol)
     error_initial = graph.error(values)
+    # the start: the landmarks, and the IMU's velocities and biases, fitted to the online poses, held
+    X_fitted, refit_iterations = _fit_landmarks_to_poses(mlog, rig, T0, poses_init, points_init, sorted(landmarks), sigma_px, robust)
+    for lm, X_lm in X_fitted.items():
+        values.update(L(lm), gtsam.Point3(*X_lm))
+    if n_imu:
+        values.update(_fit_to_held_poses(imu_graph, values, params))
+    error_refit = graph.error(values)
     try:
-        values, refit_iterations = _fit_landmarks_to_poses(graph, values, mlog.n_frames + 1, params)  # (the velocities and biases fit too)
-        error_refit = graph.error(values)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         out = optimizer.optimize()
     except RuntimeError as exc:

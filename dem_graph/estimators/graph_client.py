@@ -23,6 +23,7 @@ import numpy as np
 
 from dem_graph.errors import DemGraphError
 from dem_graph.estimators.graph_worker import (
+    DelayedProcessGraph,
     GraphResult,
     GraphSetup,
     InProcessGraph,
@@ -131,7 +132,13 @@ class GraphClient:
             rig.camera_model, np.array(rig.T_body_cam, dtype=float), c.frontend.camera_point_sigma_px, c.split_link_sigma_m, c.robust,
             rig.imu if c.motion.use_imu else None, c.motion.initial_sigma_speed_mps,
         )  # fmt: skip
-        self._graph = ProcessGraph(setup, c.graph_max_lag, c.graph_process_nice) if c.graph_process else InProcessGraph(setup, c.graph_delay_keyframes)
+        in_second_process, delay = c.graph_placement
+        if in_second_process and delay:
+            self._graph = DelayedProcessGraph(setup, delay)  # (at the front end's priority: a frame waits for a late result)
+        elif in_second_process:
+            self._graph = ProcessGraph(setup, c.graph_max_lag, c.graph_process_nice)
+        else:
+            self._graph = InProcessGraph(setup, delay)
         self._when_behind = c.graph_when_behind or "merge"
         # per graph update taken: its time by phase, seconds ("total": the whole update)
         self.update_phases: dict[str, list[float]] = {}
@@ -160,7 +167,9 @@ class GraphClient:
     def graph(self) -> KeyframeGraph:
         """The smoother itself, when it runs in this process (studies and tests)."""
         if not self.in_process:
-            raise DemGraphError("the graph runs in a second process (graph_process: true); its smoother is not reachable from here")
+            raise DemGraphError(
+                "the graph runs in a second process (graph_process, or the batch's batch_graph_delay_keyframes above 0); its smoother is not reachable from here"
+            )
         return self._graph.worker.graph
 
     @property

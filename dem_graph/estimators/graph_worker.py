@@ -329,9 +329,10 @@ class InProcessGraph:
         pass
 
 
-def _serve(conn) -> None:
-    """The second process: apply whatever has arrived as one update, answer, repeat. A broken
-    connection (EOFError, OSError) is left to :func:`main`."""
+def _serve(conn, one_at_a_time: bool = False) -> None:
+    """The second process: apply whatever has arrived as one update (``one_at_a_time``: each message
+    as its own, as :class:`InProcessGraph` does), answer, repeat. A broken connection (EOFError,
+    OSError) is left to :func:`main`."""
     setup = conn.recv()
     try:
         worker = GraphWorker(setup)
@@ -340,7 +341,7 @@ def _serve(conn) -> None:
         return
     while True:
         messages = [conn.recv()]
-        while conn.poll():
+        while not one_at_a_time and conn.poll():
             messages.append(conn.recv())
         finish = any(isinstance(m, str) and m == "finish" for m in messages)
         messages = [m for m in messages if not isinstance(m, str)]
@@ -408,10 +409,10 @@ class ProcessGraph:
     only to keep the front end within ``max_lag`` keyframes of the graph's newest result, and takes
     the results that arrive meanwhile."""
 
-    def __init__(self, setup: GraphSetup, max_lag: int = 10, nice: int = 0):
+    def __init__(self, setup: GraphSetup, max_lag: int = 10, nice: int = 0, one_at_a_time: bool = False):
         ours, theirs = socket.socketpair()
         try:
-            command = [sys.executable, "-m", __name__, str(theirs.fileno()), str(os.getpid()), str(int(nice))]
+            command = [sys.executable, "-m", __name__, str(theirs.fileno()), str(os.getpid()), str(int(nice)), str(int(one_at_a_time))]
             with _sigint_held():
                 self._process = subprocess.Popen(command, pass_fds=(theirs.fileno(),))
         except OSError as exc:
@@ -532,6 +533,49 @@ class ProcessGraph:
         atexit.unregister(self.close)
 
 
+class DelayedProcessGraph(ProcessGraph):
+    """The graph in a second process that takes one message at a time, its results handed back exactly
+    ``delay`` messages after their own, waiting for one that is not back when due: what
+    :class:`InProcessGraph` with that delay gives, number for number, while the graph's updates run
+    beside the frames between. For offline runs: a frame may wait."""
+
+    def __init__(self, setup: GraphSetup, delay: int, nice: int = 0):
+        if delay < 1:
+            raise ValueError(f"a delayed graph needs a delay of at least one keyframe, got {delay}")
+        super().__init__(setup, max_lag=sys.maxsize, nice=nice, one_at_a_time=True)
+        self.delay = delay
+        self._sent = 0  # messages sent, each of which has one result
+        self._handed = 0  # results handed back
+
+    def send(self, message) -> None:
+        super().send(message)
+        self._sent += 1
+
+    @property
+    def started(self) -> bool:
+        return True  # (nothing waits for the start: a result due before the process answers is waited for)
+
+    def wait_for(self, k: int, timeout_s: float | None) -> bool:
+        return True  # (the wait is for a result when due, in results())
+
+    def results(self) -> list[GraphResult]:
+        """The results due: every message's but the last ``delay``'s, in order, waiting for them."""
+        due = self._sent - self.delay
+        self._early.extend(self._arrived())
+        while self._handed + len(self._early) < due:
+            self._early.append(self._receive()[1])
+            self._answered_k = max(self._answered_k, self._early[-1].k)
+        n = max(due - self._handed, 0)
+        out, self._early = self._early[:n], self._early[n:]
+        self._handed += n
+        return out
+
+    def finish(self) -> tuple[list[GraphResult], tuple[dict[int, np.ndarray], dict[int, np.ndarray]]]:
+        pending, final = super().finish()
+        self._handed = self._sent  # every result is handed back now
+        return pending, final
+
+
 def _lower_priority(nice: int) -> None:
     """This process's scheduling priority lowered by ``nice`` (where the system has ``os.nice``), so
     that where the cores are short, the front end's frames go first and the graph falls behind."""
@@ -542,14 +586,14 @@ def _lower_priority(nice: int) -> None:
             pass
 
 
-def main(fd: int, estimator_pid: int, nice: int = 0) -> None:
+def main(fd: int, estimator_pid: int, nice: int = 0, one_at_a_time: bool = False) -> None:
     """The second process, connected on ``fd`` to the estimator's process ``estimator_pid``, its
-    priority lowered by ``nice``."""
+    priority lowered by ``nice``; ``one_at_a_time``: see :func:`_serve`."""
     if not _follow_the_estimator(estimator_pid):
         return
     _lower_priority(nice)
     try:
-        _serve(Connection(fd))
+        _serve(Connection(fd), one_at_a_time)
     except (EOFError, OSError):  # the estimator has gone (ended early, interrupted, killed): no one to answer
         pass
 
@@ -558,10 +602,11 @@ if __name__ == "__main__":
     # through the package, so the messages unpickle to the classes the worker checks against
     from dem_graph.estimators.graph_worker import main as package_main
 
-    package_main(int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]))
+    package_main(int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), bool(int(sys.argv[4])))
 
 
 __all__ = [
+    "DelayedProcessGraph",
     "GraphResult",
     "GraphSetup",
     "GraphWorker",

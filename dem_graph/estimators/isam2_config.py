@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field
 
 from dem_graph.config_types import StrictModel
 from dem_graph.estimators.settings import SharedSettings
@@ -22,7 +22,7 @@ class Isam2Options(StrictModel):
         "since its last (sigma_px / sqrt(frames)). An update's cost grows with the square of the keyframes that saw each landmark: 2 makes iSAM2's "
         "solve about three times cheaper and a keyframe's graph work about 40 % less, at some accuracy (eight paper seeds in this process: mean ATE "
         "0.066 against 0.050 m, docs/isam2_design.md). "
-        "Unset: 2 with graph_process (so that the graph keeps up at the camera's rate on two cores), else 1",
+        "Unset: 2 with graph_process and no graph_delay_keyframes (so that the graph keeps up at the camera's rate on two cores), else 1",
     )
     keyframe_min_live_fraction: float = Field(0.8, ge=0, le=1, description="also a keyframe when the live points fall below this fraction of the cap (new points enter at keyframes)")
     lag_s: float = Field(1.5, gt=0, description="fixed lag of the smoother, seconds: older variables are marginalised")
@@ -79,14 +79,26 @@ class Isam2Options(StrictModel):
     graph_delay_keyframes: int = Field(
         0,
         ge=0,
-        description="graph in this process only: hand each result back this many keyframes late, as a second process's come back, "
-        "but reproducibly (studies and tests of that lag); 0: in the frame that sent it",
+        description="hand each graph result back exactly this many keyframes late, reproducibly. In this process: as a second process's come "
+        "back (studies and tests of that lag). With graph_process: the second process takes one keyframe at a time and the front end waits "
+        "for a result that is not back when due, so its updates run beside the next keyframes' frames and the run is the same, number for "
+        "number, as in this process with that delay (for offline runs: a frame may wait; graph_process_nice is not applied, the frames "
+        "waiting for it). 0: in this process, in the frame that sent it; "
+        "with graph_process, whenever it comes (a run then depends on the timing)",
     )
     batch_keyframe_every: int = Field(
         5,
         ge=1,
         description="isam2-batch: keyframe_every of its online pass, which only associates the data (the batch has a pose for every frame); "
         "fewer keyframes make that pass cheaper (docs/isam2_design.md)",
+    )
+    batch_graph_delay_keyframes: int = Field(
+        1,
+        ge=0,
+        description="isam2-batch: its online pass's graph runs in a second process, each result handed back exactly this many keyframes late "
+        "(graph_delay_keyframes with graph_process: reproducible), so that the graph's updates run beside the next keyframes' tracking; "
+        "0: as graph_process and graph_delay_keyframes say (by default in this process, each result in the frame that sent it). Ignored "
+        "with graph_process (the second process's results then come when they are ready)",
     )
     batch_max_iterations: int = Field(10, ge=1, description="isam2-batch: Levenberg-Marquardt iterations at most")
     batch_relative_error_tol: float = Field(1e-3, gt=0, description="isam2-batch: stop when the error falls by less than this fraction")
@@ -96,16 +108,6 @@ class Isam2Options(StrictModel):
         "so that the run's pose NEES is the batch's own; false: the frames keep the online pass's covariances (and the marginals' cost is saved)",
     )
 
-    @model_validator(mode="after")
-    def _delay_needs_the_graph_in_process(self):
-        if self.graph_process and self.graph_delay_keyframes:
-            raise ValueError(
-                "graph_delay_keyframes holds back the results of the graph in this process; with graph_process: true the lag is the second "
-                "process's own: set one of the two"
-            )
-        return self
-
-
 class Isam2Config(SharedSettings, Isam2Options):
     """The graph estimator's options with the settings every estimator shares."""
 
@@ -114,13 +116,23 @@ class Isam2Config(SharedSettings, Isam2Options):
     @property
     def observation_spacing(self) -> int:
         """Keyframes between a landmark's observations in the graph: ``observation_every``, unset: 2 with the graph in
-        a second process and 1 in this one; 1 for the batch's online pass (its keyframes are 5 frames apart already,
-        and the batch has every frame's observations)."""
+        a second process whose results come when ready, and 1 in this one or handed back at a fixed delay; 1 for the
+        batch's online pass (its keyframes are 5 frames apart already, and the batch has every frame's observations)."""
         if self.batch:
             return 1
         if self.observation_every is not None:
             return self.observation_every
-        return 2 if self.graph_process else 1
+        return 2 if self.graph_process and not self.graph_delay_keyframes else 1
+
+    @property
+    def graph_placement(self) -> tuple[bool, int]:
+        """Where the graph runs and how late its results are handed back: (in a second process, the delay in
+        keyframes). The batch's online pass: in a second process, ``batch_graph_delay_keyframes`` late, when that
+        is above 0 and ``graph_process`` is not set; otherwise ``graph_process`` and ``graph_delay_keyframes``. A
+        second process with a delay of 0 hands its results back when they come; with more, exactly that late."""
+        if self.batch and not self.graph_process and self.batch_graph_delay_keyframes > 0:
+            return True, self.batch_graph_delay_keyframes
+        return self.graph_process, self.graph_delay_keyframes
 
     @property
     def keyframe_spacing(self) -> int:
