@@ -159,3 +159,36 @@ def test_range_factor_measures_from_the_sensor():
     assert f.error(_values(0, T, 1, X + 1e-4 * across)) < 1e-15
     with pytest.raises(ValueError):
         range_factor(0, 1, -1.0, 0.5, rig.T_body_cam)
+
+
+def test_many_seeds_give_the_factors_of_each_seed_alone():
+    """``seeds_factors`` (the batch's graph, a keyframe's new points) gives, seed by seed and in the
+    seeds' order, what ``seed_factors`` gives each seed alone: laser and camera seeds mixed, the same
+    keys, errors and Jacobians to the bit at values off the seeds; a camera seed behind the camera is
+    refused, as alone."""
+    from dem_graph.estimators.graph_factors import seed_factors, seeds_factors
+    from dem_graph.frontend.frontend import PointKind
+
+    rig = default_rig()
+    K = calibration(rig.camera_model)
+    rng = np.random.default_rng(3)
+    n = 12
+    kinds = [PointKind.LASER if k % 3 else PointKind.CAMERA for k in range(n)]
+    p_body = np.column_stack([rng.uniform(3, 8, n), rng.uniform(-2, 2, n), rng.uniform(-0.3, 0.3, n)])
+    Sigma = np.array([np.diag(rng.uniform(0.01, 0.3, 3) ** 2) + 1e-4 for _ in range(n)])
+    pose_keys, point_keys = [100 + k % 4 for k in range(n)], list(range(n))
+    many = seeds_factors(pose_keys, point_keys, kinds, p_body, Sigma, rig.camera_model, K, rig.T_body_cam, 1.0)
+    alone = [f for k in range(n) for f in seed_factors(pose_keys[k], point_keys[k], kinds[k], p_body[k], Sigma[k], rig.camera_model, K, rig.T_body_cam, 1.0)]
+    assert len(many) == len(alone) == 2 * n
+    T = make_pose(rotation_from_rpy(0.02, -0.01, 0.4), [1.0, 2.0, 0.1])
+    for a, b in zip(many, alone):
+        assert type(a) is type(b) and list(a.keys()) == list(b.keys())
+        pose_key, point_key = a.keys()
+        v = _values(pose_key, T, point_key, transform_points(T, p_body[point_key][None])[0] + rng.normal(scale=0.2, size=3))
+        assert a.error(v) == b.error(v)
+        la, lb = a.linearize(v), b.linearize(v)
+        np.testing.assert_array_equal(la.jacobian()[0], lb.jacobian()[0])
+    behind = p_body.copy()
+    behind[0] = [-5.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match="in front of the camera"):
+        seeds_factors(pose_keys, point_keys, kinds, behind, Sigma, rig.camera_model, K, rig.T_body_cam, 1.0)

@@ -42,7 +42,7 @@ from gtsam.symbol_shorthand import B, L, V, X
 from dem_graph.errors import DemGraphError, one_line
 from dem_graph.estimators.base import ONLINE_TRAJECTORY, EstimatorResult
 from dem_graph.estimators.batch_start import fit_landmarks
-from dem_graph.estimators.graph_factors import ProjectionFactors, calibration, link_factor, odometry_factor, seed_factors
+from dem_graph.estimators.graph_factors import ProjectionFactors, calibration, link_factor, odometry_factor, seeds_factors
 from dem_graph.estimators.imu_preintegration import bias_sigmas, preintegrate, preintegration_params
 from dem_graph.estimators.measurement_log import MeasurementLog
 from dem_graph.geometry.rig import ImuSpec, SensorRig
@@ -132,8 +132,11 @@ def build_graph(mlog: MeasurementLog, rig: SensorRig, T0: np.ndarray, P0: np.nda
         graph.add(odometry_factor(X(f), X(f + 1), mlog.T_prev_curr[f], mlog.motion_covariance[f]))
     for before, after, sigma_m in mlog.links:
         graph.add(link_factor(L(before), L(after), sigma_m))
-    for f, lm, seed in zip(mlog.seed_frame, mlog.seed_landmark, mlog.seeds):
-        for factor in seed_factors(X(f + 1), L(lm), seed.kind, seed.p_body, seed.Sigma_body, rig.camera_model, K, T_body_cam, sigma_seed_px):
+    if mlog.seeds:
+        for factor in seeds_factors(
+            [X(f + 1) for f in mlog.seed_frame], [L(lm) for lm in mlog.seed_landmark], [seed.kind for seed in mlog.seeds],
+            np.array([seed.p_body for seed in mlog.seeds]), np.array([seed.Sigma_body for seed in mlog.seeds]), rig.camera_model, K, T_body_cam, sigma_seed_px,
+        ):  # fmt: skip
             graph.add(factor)
     frames, landmarks, uv = mlog.observations()
     projection = ProjectionFactors(K, T_body_cam, robust=robust)

@@ -14,7 +14,8 @@
 - :func:`projection_factor`: a ``GenericProjectionFactorCal3DS2`` with ``T_body_cam`` as the
   sensor offset and a robust (Huber) kernel; :class:`ProjectionFactors` makes the same factors in a
   hot loop, sharing the sensor offset and one noise model per pixel sigma.
-- :func:`seed_factors`: the factors a new point enters the graph with (laser or flat-ground seed).
+- :func:`seed_factors`: the factors a new point enters the graph with (laser or flat-ground seed);
+  :func:`seeds_factors` the same for many points at once.
 - :func:`link_factor`: a landmark continued by another (a patch refresh), within a sigma.
 
 Covariances are in gtsam's tangent order [rotation, translation] (the package convention).
@@ -45,36 +46,56 @@ def point_in_frame_factors(pose_key: int, point_key: int, p_frame: np.ndarray, S
     ``d^T Sigma^-1 d / 2`` for a displacement ``d`` of the point, and it stays smooth however the
     point moves (a bearing factor's tangent basis switches axes, making its cost jump).
     """
-    p = np.asarray(p_frame, dtype=float).reshape(-1)
+    p = np.asarray(p_frame, dtype=float)
     Sigma = np.asarray(Sigma_frame, dtype=float)
-    if p.shape != (3,) or not np.all(np.isfinite(p)):
-        raise ValueError(f"a point-in-frame measurement needs a finite 3D point, got {p_frame}")
-    if Sigma.shape != (3, 3) or not np.all(np.isfinite(Sigma)):
-        raise ValueError(f"Sigma_frame must be a finite 3x3 matrix, got shape {Sigma.shape}")
-    lam, V = np.linalg.eigh(0.5 * (Sigma + Sigma.T))  # ascending
-    if lam[0] <= 0:
-        raise ValueError(f"Sigma_frame must be positive definite, got eigenvalues {lam}")
-    z, x = V[:, 2], V[:, 0]
-    R_frame_sensor = np.column_stack([x, np.cross(z, x), z])
-    T_frame_sensor = np.eye(4)
-    T_frame_sensor[:3, :3] = R_frame_sensor
-    T_frame_sensor[:3, 3] = p - VIRTUAL_RANGE_M * z
-    sensor = gtsam.Pose3(T_frame_sensor)
-    K = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
-    across = gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(lam[:2]) / VIRTUAL_RANGE_M)
-    return [
-        gtsam.GenericProjectionFactorCal3_S2(gtsam.Point2(0.0, 0.0), across, pose_key, point_key, K, sensor),
-        gtsam.RangeFactorWithTransform3D(pose_key, point_key, VIRTUAL_RANGE_M, gtsam.noiseModel.Isotropic.Sigma(1, float(np.sqrt(lam[2]))), sensor),
-    ]
+    if p.size != 3 or Sigma.shape != (3, 3):
+        raise ValueError(f"a point-in-frame measurement needs a 3D point and a 3x3 covariance, got {p_frame} and shape {Sigma.shape}")
+    return _point_in_frame_factors([pose_key], [point_key], p.reshape(1, 3), Sigma[None])
 
 
-def range_factor(pose_key: int, point_key: int, range_m: float, sigma_m: float, T_body_sensor: np.ndarray) -> gtsam.NonlinearFactor:
-    """Distance ``range_m`` (sigma ``sigma_m``) from the sensor at ``T_body_sensor`` on body pose
-    ``pose_key`` to point ``point_key``."""
+def _virtual_sensors(p_frame: np.ndarray, Sigma_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per point-in-frame measurement (m,3) with its covariance (m,3,3): the virtual sensor's pose in
+    the frame (m,4,4) and the covariance's eigenvalues (m,3), ascending (see :func:`point_in_frame_factors`)."""
+    bad = ~(np.all(np.isfinite(p_frame), axis=1) & np.all(np.isfinite(Sigma_frame), axis=(1, 2)))
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"a point-in-frame measurement needs a finite 3D point and covariance, got {p_frame[i]} and {Sigma_frame[i].tolist()}")
+    lam, V = np.linalg.eigh(0.5 * (Sigma_frame + np.swapaxes(Sigma_frame, 1, 2)))  # ascending
+    if np.any(lam[:, 0] <= 0):
+        i = int(np.flatnonzero(lam[:, 0] <= 0)[0])
+        raise ValueError(f"Sigma_frame must be positive definite, got eigenvalues {lam[i]}")
+    z, x = V[:, :, 2], V[:, :, 0]
+    T_frame_sensor = np.zeros((len(p_frame), 4, 4))
+    T_frame_sensor[:, :3, 0], T_frame_sensor[:, :3, 1], T_frame_sensor[:, :3, 2] = x, np.cross(z, x), z
+    T_frame_sensor[:, :3, 3] = p_frame - VIRTUAL_RANGE_M * z
+    T_frame_sensor[:, 3, 3] = 1.0
+    return T_frame_sensor, lam
+
+
+_UNIT_CAMERA = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
+
+
+def _point_in_frame_factors(pose_keys, point_keys, p_frame: np.ndarray, Sigma_frame: np.ndarray) -> list[gtsam.NonlinearFactor]:
+    """:func:`point_in_frame_factors` of many measurements (m,3), (m,3,3), in their order."""
+    T_frame_sensor, lam = _virtual_sensors(p_frame, Sigma_frame)
+    across = np.sqrt(lam[:, :2]) / VIRTUAL_RANGE_M
+    along = np.sqrt(lam[:, 2])
+    out = []
+    for pose_key, point_key, T, s_across, s_along in zip(pose_keys, point_keys, T_frame_sensor, across, along):
+        sensor = gtsam.Pose3(T)
+        out.append(gtsam.GenericProjectionFactorCal3_S2(np.zeros(2), gtsam.noiseModel.Diagonal.Sigmas(s_across), pose_key, point_key, _UNIT_CAMERA, sensor))
+        out.append(gtsam.RangeFactorWithTransform3D(pose_key, point_key, VIRTUAL_RANGE_M, gtsam.noiseModel.Isotropic.Sigma(1, float(s_along)), sensor))
+    return out
+
+
+def range_factor(pose_key: int, point_key: int, range_m: float, sigma_m: float, T_body_sensor: np.ndarray | gtsam.Pose3) -> gtsam.NonlinearFactor:
+    """Distance ``range_m`` (sigma ``sigma_m``) from the sensor at ``T_body_sensor`` (4x4, or a
+    ``gtsam.Pose3``) on body pose ``pose_key`` to point ``point_key``."""
     if not (np.isfinite(range_m) and range_m > 0 and np.isfinite(sigma_m) and sigma_m > 0):
         raise ValueError(f"a range factor needs a positive range and sigma, got {range_m}, {sigma_m}")
     noise = gtsam.noiseModel.Isotropic.Sigma(1, float(sigma_m))
-    return gtsam.RangeFactorWithTransform3D(pose_key, point_key, float(range_m), noise, gtsam.Pose3(np.asarray(T_body_sensor, dtype=float)))
+    sensor = T_body_sensor if isinstance(T_body_sensor, gtsam.Pose3) else gtsam.Pose3(np.asarray(T_body_sensor, dtype=float))
+    return gtsam.RangeFactorWithTransform3D(pose_key, point_key, float(range_m), noise, sensor)
 
 
 def odometry_factor(key_a: int, key_b: int, T_a_b: np.ndarray, covariance: np.ndarray) -> gtsam.BetweenFactorPose3:
@@ -138,17 +159,43 @@ def seed_factors(
     - Camera point (flat-ground guess): the range from the camera, with the covariance's variance
       along the camera's ray, and the pixel it was seeded at, with ``sigma_seed_px``.
     """
-    p = np.asarray(p_body, dtype=float).reshape(3)
-    if kind == PointKind.LASER:
-        return point_in_frame_factors(pose_key, point_key, p, Sigma_body)
-    ray = p - np.asarray(T_body_cam)[:3, 3]
-    range_m = float(np.linalg.norm(ray))
-    r = ray / range_m
-    sigma_along = float(np.sqrt(r @ np.asarray(Sigma_body) @ r))
-    uv, in_front = camera.project(transform_points(invert(T_body_cam), p[None]))
-    if not in_front[0]:
-        raise ValueError(f"a camera seed must lie in front of the camera, got {p} in the body frame")
-    return [range_factor(pose_key, point_key, range_m, sigma_along, T_body_cam), projection_factor(pose_key, point_key, uv[0], sigma_seed_px, K, T_body_cam, robust=False)]
+    return seeds_factors([pose_key], [point_key], [kind], np.reshape(p_body, (1, 3)), np.reshape(Sigma_body, (1, 3, 3)), camera, K, T_body_cam, sigma_seed_px)
+
+
+def seeds_factors(
+    pose_keys, point_keys, kinds, p_body: np.ndarray, Sigma_body: np.ndarray, camera: PinholeCamera, K: gtsam.Cal3DS2, T_body_cam: np.ndarray, sigma_seed_px: float
+) -> list[gtsam.NonlinearFactor]:
+    """:func:`seed_factors` of many seeds (``p_body`` (m,3), ``Sigma_body`` (m,3,3)), each seed's
+    factors in the seeds' order; the laser seeds' eigen-decompositions in one call (they were most of
+    the batch graph's seed factors' 1.9 s for 9800 seeds)."""
+    p = np.asarray(p_body, dtype=float).reshape(-1, 3)
+    Sigma = np.asarray(Sigma_body, dtype=float).reshape(-1, 3, 3)
+    laser = np.array([kind == PointKind.LASER for kind in kinds], dtype=bool)
+    by_seed: list[list[gtsam.NonlinearFactor]] = [[] for _ in range(len(p))]
+    if np.any(laser):
+        idx = np.flatnonzero(laser)
+        factors = _point_in_frame_factors([pose_keys[i] for i in idx], [point_keys[i] for i in idx], p[idx], Sigma[idx])
+        for n, i in enumerate(idx):
+            by_seed[i] = factors[2 * n : 2 * n + 2]
+    if not np.all(laser):
+        idx = np.flatnonzero(~laser)
+        T_body_cam = np.asarray(T_body_cam, dtype=float)
+        T_cam_body = invert(T_body_cam)
+        range_m, sigma_along, uv = [], [], []
+        for i in idx:  # (one seed at a time, as alone, to the bit: a stack's norms and products may round otherwise)
+            ray = p[i] - T_body_cam[:3, 3]
+            range_m.append(float(np.linalg.norm(ray)))
+            r = ray / range_m[-1]
+            sigma_along.append(float(np.sqrt(r @ Sigma[i] @ r)))
+            uv_i, in_front = camera.project(transform_points(T_cam_body, p[i][None]))
+            if not in_front[0]:
+                raise ValueError(f"a camera seed must lie in front of the camera, got {p[i]} in the body frame")
+            uv.append(uv_i[0])
+        camera_pose = gtsam.Pose3(T_body_cam)
+        projection = ProjectionFactors(K, T_body_cam, robust=False)
+        for i, rng, sigma, z in zip(idx, range_m, sigma_along, uv):
+            by_seed[i] = [range_factor(pose_keys[i], point_keys[i], float(rng), float(sigma), camera_pose), projection(pose_keys[i], point_keys[i], z, sigma_seed_px)]
+    return [f for factors in by_seed for f in factors]
 
 
 def link_factor(key_before: int, key_after: int, sigma_m: float) -> gtsam.BetweenFactorPoint3:

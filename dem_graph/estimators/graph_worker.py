@@ -43,7 +43,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from dem_graph.errors import DemGraphError
-from dem_graph.estimators.graph_factors import ProjectionFactors, calibration, link_factor, odometry_factor, seed_factors
+from dem_graph.estimators.graph_factors import ProjectionFactors, calibration, link_factor, odometry_factor, seeds_factors
 from dem_graph.estimators.imu_preintegration import bias_sigmas, preintegrate, preintegration_params
 from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
 from dem_graph.frontend.frontend import PointKind
@@ -252,7 +252,12 @@ class GraphWorker:
             g.observed(lm)
         for p in m.new_points:
             g.add_point(p.landmark, p.X_world if C is None else transform_points(C, p.X_world))
-            for f in seed_factors(X(k), L(p.landmark), p.kind, p.p_body, p.Sigma_body, s.camera, self._K, s.T_body_cam, s.camera_point_sigma_px):
+        if m.new_points:
+            new = m.new_points
+            for f in seeds_factors(
+                [X(k)] * len(new), [L(p.landmark) for p in new], [p.kind for p in new], np.array([p.p_body for p in new]), np.array([p.Sigma_body for p in new]),
+                s.camera, self._K, s.T_body_cam, s.camera_point_sigma_px,
+            ):  # fmt: skip
                 g.add_factor(f)
 
     def _stale_guess_correction(self, m: KeyframeMessage) -> np.ndarray | None:
