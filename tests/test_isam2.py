@@ -271,14 +271,16 @@ def test_batch_smooths_every_observation(batch_run):
     assert m.trajectory.ate_rmse_m < 0.03
 
 
-def test_batch_online_pass_beside_its_graph_is_reproducible(smoke_log, batch_run):
-    """The batch's online pass has its graph in a second process, each result handed back one
-    keyframe late (``batch_graph_delay_keyframes``): the run is the one with the graph in this
+def test_batch_online_pass_beside_its_graph_is_reproducible(smoke_log):
+    """``batch_graph_delay_keyframes: 1``: the batch's online pass has its graph in a second
+    process, each result handed back one keyframe late; the run is the one with the graph in this
     process and that delay, to the last bit, online pass and batch alike."""
-    run, _ = batch_run
-    assert Isam2Config(batch=True).graph_placement == (True, 1)
-    here = _run(smoke_log, "isam2-batch", isam2={"batch_graph_delay_keyframes": 0, "graph_delay_keyframes": 1})
-    assert Isam2Config(batch=True, batch_graph_delay_keyframes=0, graph_delay_keyframes=1).graph_placement == (False, 1)
+    assert Isam2Config(batch=True).graph_placement == (False, 0)
+    assert Isam2Config(batch=True, batch_graph_delay_keyframes=1).graph_placement == (True, 1)
+    assert Isam2Config(batch=True, batch_graph_delay_keyframes=1, graph_process=True).graph_placement == (True, 0)
+    run = _run(smoke_log, "isam2-batch", isam2={"batch_graph_delay_keyframes": 1})
+    here = _run(smoke_log, "isam2-batch", isam2={"graph_delay_keyframes": 1})
+    assert run.error is None and here.error is None
     np.testing.assert_array_equal(run.estimator.extra_poses[ONLINE_TRAJECTORY], here.estimator.extra_poses[ONLINE_TRAJECTORY])
     np.testing.assert_array_equal([f.T_world_body for f in run.estimator.frames], [f.T_world_body for f in here.estimator.frames])
     assert run.metrics.events["graph_lag_keyframes_median"] == 1 == run.metrics.events["graph_lag_keyframes_max"]
@@ -313,8 +315,8 @@ def test_batch_fits_the_landmarks_to_the_poses_before_smoothing(smoke_log, batch
 
 
 def test_batch_online_pass_is_the_online_estimator_at_its_spacing(smoke_log, isam2_run):
-    # with the online estimator's keyframe spacing and its graph in this process, the batch's online pass is that estimator, to the bit
-    run = _run(smoke_log, "isam2-batch", isam2={"batch_keyframe_every": 1, "batch_graph_delay_keyframes": 0})
+    # with the online estimator's keyframe spacing, the batch's online pass is that estimator, to the bit
+    run = _run(smoke_log, "isam2-batch", isam2={"batch_keyframe_every": 1})
     assert run.metrics.trajectory_online.ate_rmse_m == pytest.approx(isam2_run.metrics.trajectory.ate_rmse_m, rel=1e-9)
     # --keyframe-every sets the spacing of the run's own estimator only
     assert run_config(overrides=RunOverrides(estimator="isam2-batch", keyframe_every=3)).isam2.batch_keyframe_every == 3
