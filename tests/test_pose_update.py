@@ -77,12 +77,12 @@ def test_mismatched_lengths_are_refused():
 
 @pytest.mark.parametrize("robust", [True, False])
 def test_the_compiled_normal_equations_are_the_projections_ones(robust):
-    """The pose update's compiled per-point loop (pose_kernel.normal_equations) gives the normal
+    """The pose update's compiled per-point loop (projection_kernel.normal_equations) gives the normal
     equations of the numpy formulation (project_with_jacobians, R_i = sigma^2 I + H_x Sigma H_x^T,
     Huber weights, sum H^T W H and H^T W r) to 1e-9 relative, with lens distortion, points behind
     the camera and pixels that are NaN left out, and outliers in the Huber kernel's linear part."""
-    from dem_graph.estimators.pose_kernel import normal_equations
     from dem_graph.estimators.pose_update import HUBER_K, project_with_jacobians
+    from dem_graph.estimators.projection_kernel import normal_equations
     from dem_graph.geometry.camera import PinholeCamera
 
     rng = np.random.default_rng(11)
@@ -121,12 +121,12 @@ def test_the_pose_kernel_a_frame_runs_is_compiled_before_it(monkeypatch):
     the first frame. A fresh dispatcher of the same loop, so that no other test's call counts."""
     import numba
 
-    from dem_graph.estimators import pose_kernel, pose_update
+    from dem_graph.estimators import pose_update, projection_kernel
 
-    fresh = numba.njit(nogil=True)(pose_kernel.normal_equations.py_func)
-    monkeypatch.setattr(pose_kernel, "normal_equations", fresh)
+    fresh = numba.njit(nogil=True)(projection_kernel.normal_equations.py_func)
+    monkeypatch.setattr(projection_kernel, "normal_equations", fresh)
     monkeypatch.setattr(pose_update, "normal_equations", fresh)
-    pose_kernel.compile_kernel()
+    projection_kernel.compile_kernel()
     assert len(fresh.signatures) == 1
     rig, T_true, X = _scene(np.random.default_rng(3))
     for robust in (True, False):

@@ -28,7 +28,7 @@ import scipy.sparse
 import scipy.sparse.csgraph
 import scipy.sparse.linalg
 
-from dem_graph.estimators.landmark_kernel import pixel_normal_equations
+from dem_graph.estimators.projection_kernel import pixel_normal_equations
 from dem_graph.geometry.camera import PinholeCamera
 from dem_graph.geometry.se3 import invert
 

@@ -20,8 +20,8 @@ import numpy as np
 from dem_graph.estimators.false_matches import FalseMatches
 from dem_graph.estimators.isam2_config import Isam2Config
 from dem_graph.estimators.live_points import LivePoints
-from dem_graph.estimators.pose_kernel import compile_kernel as compile_pose_kernel
 from dem_graph.estimators.pose_update import project_with_jacobians, update_pose
+from dem_graph.estimators.projection_kernel import compile_kernel as compile_pose_kernel
 from dem_graph.frontend.frontend import FrontEnd, NewPoint
 from dem_graph.frontend.pose_history import PoseHistory
 from dem_graph.geometry.lie import adjoint, local

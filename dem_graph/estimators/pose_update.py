@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dem_graph.estimators.pose_kernel import normal_equations
+from dem_graph.estimators.projection_kernel import normal_equations
 from dem_graph.geometry.camera import PinholeCamera
 from dem_graph.geometry.lie import local, retract, skew
 from dem_graph.geometry.se3 import invert
