@@ -133,10 +133,9 @@ def build_graph(mlog: MeasurementLog, rig: SensorRig, T0: np.ndarray, P0: np.nda
     for before, after, sigma_m in mlog.links:
         graph.add(link_factor(L(before), L(after), sigma_m))
     if mlog.seeds:
-        for factor in seeds_factors(
-            [X(f + 1) for f in mlog.seed_frame], [L(lm) for lm in mlog.seed_landmark], [seed.kind for seed in mlog.seeds],
-            np.array([seed.p_body for seed in mlog.seeds]), np.array([seed.Sigma_body for seed in mlog.seeds]), rig.camera_model, K, T_body_cam, sigma_seed_px,
-        ):  # fmt: skip
+        p_body, Sigma_body = mlog.seed_arrays()
+        keys = ([X(f + 1) for f in mlog.seed_frame], [L(lm) for lm in mlog.seed_landmark], [seed.kind for seed in mlog.seeds])
+        for factor in seeds_factors(*keys, p_body, Sigma_body, rig.camera_model, K, T_body_cam, sigma_seed_px):
             graph.add(factor)
     frames, landmarks, uv = mlog.observations()
     projection = ProjectionFactors(K, T_body_cam, robust=robust)
@@ -154,11 +153,11 @@ def _fit_landmarks_to_poses(
     T_world_body = np.concatenate([np.asarray(T0, dtype=float)[None], np.asarray(poses, dtype=float)])  # X(0), then X(f + 1)
     frames, obs_landmarks, uv = mlog.observations()
     links = np.array([(row[a], row[b]) for a, b, _ in mlog.links], dtype=np.int64).reshape(-1, 2)
+    p_body, Sigma_body = mlog.seed_arrays()
     X, iterations = fit_landmarks(
         np.array([points[lm] for lm in landmarks], dtype=float).reshape(-1, 3), T_world_body,
         frames + 1, np.array([row[lm] for lm in obs_landmarks.tolist()], dtype=np.int64), uv, sigma_px, rig.camera_model, rig.T_body_cam,
-        np.asarray(mlog.seed_frame, dtype=np.int64) + 1, np.array([row[lm] for lm in mlog.seed_landmark], dtype=np.int64),
-        np.array([s.p_body for s in mlog.seeds], dtype=float).reshape(-1, 3), np.array([s.Sigma_body for s in mlog.seeds], dtype=float).reshape(-1, 3, 3),
+        np.asarray(mlog.seed_frame, dtype=np.int64) + 1, np.array([row[lm] for lm in mlog.seed_landmark], dtype=np.int64), p_body, Sigma_body,
         links, np.array([sigma for _, _, sigma in mlog.links], dtype=float), robust=robust,
     )  # fmt: skip
     return dict(zip(landmarks, X)), iterations
@@ -168,26 +167,20 @@ def _fit_to_held_poses(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, 
     """The variables of ``graph`` other than its poses (the IMU's velocities and biases), moved to
     their best fit with every pose held where ``values`` has it."""
     held = gtsam.NonlinearFactorGraph(graph)
-    start = gtsam.Values()
     # a prior of 1 um and 1 urad, not a hard constraint: Levenberg-Marquardt's damping would move a
     # NonlinearEquality's pose and make its error infinite
     pin = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
-    for key in graph.keyVector():
-        if gtsam.Symbol(key).chr() == ord("x"):
+    keys = list(graph.keyVector())
+    poses = {key for key in keys if gtsam.Symbol(key).chr() == ord("x")}
+    start = gtsam.Values()
+    for key in keys:
+        if key in poses:
             held.add(gtsam.PriorFactorPose3(key, values.atPose3(key), pin))
-            start.insert(key, values.atPose3(key))
-        elif gtsam.Symbol(key).chr() == ord("v"):
-            start.insert(key, values.atVector(key))
-        else:
-            start.insert(key, values.atConstantBias(key))
+        start.insert(key, values.atPose3(key) if key in poses else values.atVector(key) if gtsam.Symbol(key).chr() == ord("v") else values.atConstantBias(key))
     fitted = gtsam.LevenbergMarquardtOptimizer(held, start, params).optimize()
-    out = gtsam.Values()
-    for key in graph.keyVector():
-        if gtsam.Symbol(key).chr() == ord("v"):
-            out.insert(key, fitted.atVector(key))
-        elif gtsam.Symbol(key).chr() == ord("b"):
-            out.insert(key, fitted.atConstantBias(key))
-    return out
+    for key in poses:
+        fitted.erase(key)
+    return fitted
 
 
 def _marginals_by_qr(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]) -> np.ndarray:
@@ -205,8 +198,14 @@ def _marginals_by_qr(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, ke
 MARGINAL_CHUNK = 25
 
 
-def _chunks(items: list, size: int) -> list[list]:
-    return [items[i : i + size] for i in range(0, len(items), size)]
+def _pose_covariances(marginals: gtsam.Marginals, keys: list[int]) -> np.ndarray:
+    """Each pose's marginal covariance, taken ``MARGINAL_CHUNK`` poses at a time."""
+    out = []
+    for i in range(0, len(keys), MARGINAL_CHUNK):
+        chunk = keys[i : i + MARGINAL_CHUNK]
+        joint = marginals.jointMarginalCovariance(gtsam.KeyVector(chunk))
+        out += [joint.at(k, k) for k in chunk]
+    return np.array(out)
 
 
 def pose_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]) -> tuple[np.ndarray | None, bool]:
@@ -219,7 +218,7 @@ def pose_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys
     by_qr = False
     try:
         marginals = gtsam.Marginals(graph, values)
-        P = np.array([joint.at(k, k) for chunk in _chunks(keys, MARGINAL_CHUNK) for joint in [marginals.jointMarginalCovariance(gtsam.KeyVector(chunk))] for k in chunk])
+        P = _pose_covariances(marginals, keys)
     except RuntimeError as exc:
         log.info("batch: Cholesky found the system indeterminate (%s): the marginals by QR instead", one_line(exc))
         by_qr = True

@@ -28,11 +28,10 @@ import scipy.sparse
 import scipy.sparse.csgraph
 import scipy.sparse.linalg
 
+from dem_graph.estimators.graph_factors import HUBER_K
 from dem_graph.estimators.projection_kernel import pixel_normal_equations
 from dem_graph.geometry.camera import PinholeCamera
 from dem_graph.geometry.se3 import invert
-
-HUBER_K = 1.345  # as the batch graph's projection factors (graph_factors.HUBER_K)
 
 
 def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:

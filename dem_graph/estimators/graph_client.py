@@ -134,7 +134,7 @@ class GraphClient:
         )  # fmt: skip
         in_second_process, delay = c.graph_placement
         if in_second_process and delay:
-            self._graph = DelayedProcessGraph(setup, delay)  # (at the front end's priority: a frame waits for a late result)
+            self._graph = DelayedProcessGraph(setup, delay)
         elif in_second_process:
             self._graph = ProcessGraph(setup, c.graph_max_lag, c.graph_process_nice)
         else:

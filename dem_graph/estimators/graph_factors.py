@@ -181,20 +181,17 @@ def seeds_factors(
         idx = np.flatnonzero(~laser)
         T_body_cam = np.asarray(T_body_cam, dtype=float)
         T_cam_body = invert(T_body_cam)
-        range_m, sigma_along, uv = [], [], []
-        for i in idx:  # (one seed at a time, as alone, to the bit: a stack's norms and products may round otherwise)
-            ray = p[i] - T_body_cam[:3, 3]
-            range_m.append(float(np.linalg.norm(ray)))
-            r = ray / range_m[-1]
-            sigma_along.append(float(np.sqrt(r @ Sigma[i] @ r)))
-            uv_i, in_front = camera.project(transform_points(T_cam_body, p[i][None]))
-            if not in_front[0]:
-                raise ValueError(f"a camera seed must lie in front of the camera, got {p[i]} in the body frame")
-            uv.append(uv_i[0])
         camera_pose = gtsam.Pose3(T_body_cam)
         projection = ProjectionFactors(K, T_body_cam, robust=False)
-        for i, rng, sigma, z in zip(idx, range_m, sigma_along, uv):
-            by_seed[i] = [range_factor(pose_keys[i], point_keys[i], float(rng), float(sigma), camera_pose), projection(pose_keys[i], point_keys[i], z, sigma_seed_px)]
+        for i in idx:  # (one seed at a time, as alone, to the bit: a stack's norms and products may round otherwise)
+            ray = p[i] - T_body_cam[:3, 3]
+            range_m = float(np.linalg.norm(ray))
+            r = ray / range_m
+            sigma_along = float(np.sqrt(r @ Sigma[i] @ r))
+            uv, in_front = camera.project(transform_points(T_cam_body, p[i][None]))
+            if not in_front[0]:
+                raise ValueError(f"a camera seed must lie in front of the camera, got {p[i]} in the body frame")
+            by_seed[i] = [range_factor(pose_keys[i], point_keys[i], range_m, sigma_along, camera_pose), projection(pose_keys[i], point_keys[i], uv[0], sigma_seed_px)]
     return [f for factors in by_seed for f in factors]
 
 

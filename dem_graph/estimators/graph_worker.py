@@ -542,12 +542,13 @@ class DelayedProcessGraph(ProcessGraph):
     """The graph in a second process that takes one message at a time, its results handed back exactly
     ``delay`` messages after their own, waiting for one that is not back when due: what
     :class:`InProcessGraph` with that delay gives, number for number, while the graph's updates run
-    beside the frames between. For offline runs: a frame may wait."""
+    beside the frames between. For offline runs: a frame may wait, so the process keeps the front
+    end's priority."""
 
-    def __init__(self, setup: GraphSetup, delay: int, nice: int = 0):
+    def __init__(self, setup: GraphSetup, delay: int):
         if delay < 1:
             raise ValueError(f"a delayed graph needs a delay of at least one keyframe, got {delay}")
-        super().__init__(setup, max_lag=sys.maxsize, nice=nice, one_at_a_time=True)
+        super().__init__(setup, max_lag=sys.maxsize, one_at_a_time=True)
         self.delay = delay
         self._sent = 0  # messages sent, each of which has one result
         self._handed = 0  # results handed back

@@ -97,8 +97,8 @@ class Isam2Options(StrictModel):
         ge=0,
         description="isam2-batch: run its online pass's graph in a second process, each result handed back exactly this many keyframes late "
         "(graph_delay_keyframes with graph_process: reproducible), so that the graph's updates run beside the next keyframes' tracking. "
-        "1 made the eight paper runs a fifth faster, and the online pass's association, which decides the batch's answer, another draw "
-        "(mean ATE 0.083 against 0.071 m, docs/isam2_design.md). 0: as graph_process and graph_delay_keyframes say (by default in this "
+        "1 made the online pass of paper seed 0 a fifth faster (23.9 against 29.8 s), and its association, which decides the batch's answer, "
+        "another draw (eight seeds: mean ATE 0.083 against 0.071 m, docs/isam2_design.md). 0: as graph_process and graph_delay_keyframes say (by default in this "
         "process, each result in the frame that sent it). Ignored with graph_process (the second process's results then come when ready)",
     )
     batch_max_iterations: int = Field(10, ge=1, description="isam2-batch: Levenberg-Marquardt iterations at most")

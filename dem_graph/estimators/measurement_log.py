@@ -59,6 +59,10 @@ class MeasurementLog:
         """Landmark ``after`` continues ``before`` (a patch refresh), within ``sigma_m`` of it."""
         self.links.append((int(before), int(after), float(sigma_m)))
 
+    def seed_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every seed's body-frame position (m,3) and covariance (m,3,3), in the seeds' order."""
+        return np.array([s.p_body for s in self.seeds], dtype=float).reshape(-1, 3), np.array([s.Sigma_body for s in self.seeds], dtype=float).reshape(-1, 3, 3)
+
     def observations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Frame index (N,), landmark (N,) and pixel (N,2) of every observation."""
         if not self._obs_frame:
