@@ -20,8 +20,8 @@ class Isam2Options(StrictModel):
         ge=1,
         description="each landmark's observation goes to the graph at every this many keyframes, the landmarks taking turns, and carries the frames "
         "since its last (sigma_px / sqrt(frames)). An update's cost grows with the square of the keyframes that saw each landmark: 2 makes iSAM2's "
-        "solve about three times cheaper and a keyframe's graph work about 40 % less, at some accuracy (eight paper seeds in this process: mean ATE "
-        "0.066 against 0.050 m, docs/isam2_design.md). "
+        "solve about three times cheaper and a keyframe's graph work about 40 % less, at no accuracy that shows (eight paper seeds in this "
+        "process, two draws each: mean ATE 0.068 against 0.062 m, docs/isam2_design.md). "
         "Unset: 2 with graph_process and no graph_delay_keyframes (so that the graph keeps up at the camera's rate on two cores), else 1",
     )
     keyframe_min_live_fraction: float = Field(0.8, ge=0, le=1, description="also a keyframe when the live points fall below this fraction of the cap (new points enter at keyframes)")
