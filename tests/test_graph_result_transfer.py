@@ -7,6 +7,7 @@ import pickle
 
 import numpy as np
 
+from dem_graph.estimators.graph_client import _take_window
 from dem_graph.estimators.graph_worker import GraphResult
 
 
@@ -34,8 +35,19 @@ def test_a_failed_update_arrives_with_empty_estimates():
 
 
 def test_an_estimate_kept_from_a_result_does_not_hold_the_others():
-    """The estimator keeps some estimates for the whole run: each arrives as an array of its own, not
-    a view of the packed window (which would keep every result's window in memory)."""
-    points = {j: np.full(3, float(j)) for j in range(500)}
-    got = pickle.loads(pickle.dumps(GraphResult(1, {0: np.eye(4)}, points)))
-    assert all(v.base is None for v in (*got.points.values(), *got.poses.values()))
+    """The estimator keeps every estimate for the whole run. The window's estimates arrive as rows of
+    one array per result; once a landmark or keyframe has left the window, the estimator's copy of it
+    is an array of its own, with the last value it was sent, so no result's array stays alive for it."""
+    first = {j: np.full(3, float(j)) for j in range(500)}
+    second = {j: np.full(3, float(j) + 0.5) for j in range(100, 600)}  # 0-99 left the window, 500-599 came in
+    kept: dict[int, np.ndarray] = {}
+    window: set[int] = set()
+    for sent in (first, second):
+        got = pickle.loads(pickle.dumps(GraphResult(1, {0: np.eye(4)}, sent)))
+        window = _take_window(kept, window, got.points)
+    assert window == set(second) and set(kept) == set(range(600))
+    assert all(kept[j].base is None and np.array_equal(kept[j], np.full(3, float(j))) for j in range(100))
+    assert all(np.array_equal(kept[j], second[j]) for j in range(100, 600))
+    # the rows still in the window share the second result's array; that array is all they hold
+    bases = {id(kept[j].base) for j in range(100, 600)}
+    assert len(bases) == 1

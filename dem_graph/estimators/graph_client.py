@@ -120,6 +120,22 @@ class Landmarks:
         return out
 
 
+def _take_window(kept: dict[int, np.ndarray], window: set[int], estimates: dict[int, np.ndarray]) -> set[int]:
+    """The latest ``estimates`` (a result's window) into ``kept``; returns the new window's keys.
+
+    A second process's estimates arrive as rows of one array per result (a view each:
+    :class:`~dem_graph.estimators.graph_worker.GraphResult`). ``kept`` holds every estimate for the
+    whole run, so one that has left the window (in ``window``, not in ``estimates``: marginalised,
+    or dropped by a restart) is copied to an array of its own, and no result's array stays alive for
+    the rows it left behind."""
+    kept.update(estimates)
+    for key in window.difference(estimates):
+        value = kept.get(key)
+        if value is not None and value.base is not None:
+            kept[key] = value.copy()
+    return set(estimates)
+
+
 class GraphClient:
     """Sends keyframes to the graph and applies its results; keeps every keyframe's time and the
     latest estimates of keyframes (``poses``) and landmarks (``points``), the last keyframe's pose
@@ -147,6 +163,8 @@ class GraphClient:
         self.keyframe_t_s: list[float] = [t_s]
         self.poses: dict[int, np.ndarray] = {0: T_world_body.copy()}
         self.points: dict[int, np.ndarray] = {}
+        self._window_poses: set[int] = set()  # the keyframes and landmarks of the last result's window
+        self._window_points: set[int] = set()
         self.landmarks = Landmarks()
         # keyframes sent whose result is not back: the front end's pose for each (moved with every
         # correction since) and the motion covariance since it
@@ -292,8 +310,8 @@ class GraphClient:
         of the matches with results 4-6 keyframes late, against 0.3 % in-process; docs/isam2_design.md).
         So the point takes the graph's estimate plus the steps those later observations gave it."""
         k = r.k
-        self.poses.update(r.poses)
-        self.points.update(r.points)
+        self._window_poses = _take_window(self.poses, self._window_poses, r.poses)
+        self._window_points = _take_window(self.points, self._window_points, r.points)
         if r.imu_bias is not None:
             self.imu_bias = r.imu_bias
         if r.recoveries:
@@ -317,16 +335,16 @@ class GraphClient:
         later_steps = self._later_steps()
         continuing = self.landmarks.continuing()
         keep = np.ones(len(live), dtype=bool)
-        for i, lm in enumerate(live.landmark):
-            lm = int(lm)
-            X_lm = r.points.get(lm)
+        points = r.points
+        for i, lm in enumerate(live.landmark.tolist()):
+            X_lm = points.get(lm)
             if X_lm is not None:
                 live.X[i] = X_lm + later_steps.get(lm, 0.0)
             elif (before := continuing.get(lm)) is not None:
                 # a patch refreshed since the last keyframe sent (its link goes with the next one): the
                 # point is still where the landmark it continues is
-                if before in r.points:
-                    live.X[i] = r.points[before] + later_steps.get(before, 0.0)
+                if before in points:
+                    live.X[i] = points[before] + later_steps.get(before, 0.0)
             elif self.landmarks.entered_after(lm, k):  # started after keyframe k: placed from a pose the correction has moved
                 live.X[i] = transform_points(C, live.X[i][None])[0]
                 self.points[lm] = live.X[i].copy()

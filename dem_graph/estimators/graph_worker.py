@@ -144,10 +144,12 @@ def _packed(arrays: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray | Non
 
 
 def _unpacked(packed: tuple[np.ndarray, np.ndarray | None]) -> dict[int, np.ndarray]:
-    """:func:`_packed`'s dict again, each value an array of its own (the estimator keeps some for the
-    whole run: a row of the packed array would keep all of it)."""
+    """:func:`_packed`'s dict again, each value a row of the packed array (a view: 0.1 against 0.5 ms
+    for a window of 660 points and 40 keyframes, copied row by row). The estimator keeps the last
+    estimate of every landmark and keyframe, so a row keeps its result's array alive; those rows come
+    from the results before the window's cuts, about 20 KB each, 2 MB over the 100 m `paper` drive."""
     keys, values = packed
-    return {} if values is None else dict(zip(keys.tolist(), map(np.copy, values)))
+    return {} if values is None else dict(zip(keys.tolist(), values))
 
 
 class GraphWorker:

@@ -391,9 +391,9 @@ class FrontEnd:
         ``archive(i, reason)`` for each, in index order; returns the mask of the points kept and
         their pixels (m,2)."""
         uv, reasons = self.drop_reasons(point_ids, X_world, T_world_body)
-        keep = np.array([r is None for r in reasons], dtype=bool)
-        for i in np.flatnonzero(~keep):
-            archive(int(i), reasons[i])
+        keep = np.fromiter((r is None for r in reasons), dtype=bool, count=len(reasons))
+        for i in np.flatnonzero(~keep).tolist():
+            archive(i, reasons[i])
         return keep, uv[keep]
 
     def drop_reasons(self, point_ids, X_world: np.ndarray, T_world_body: np.ndarray) -> tuple[np.ndarray, list[str | None]]:
@@ -406,16 +406,12 @@ class FrontEnd:
         p_body = transform_points(T_body_world, X_world)
         uv, in_front = self.camera.project(transform_points(self.T_cam_body, p_body))
         visible = self.camera.in_image(uv, self.config.image_margin_px + self.config.tracker.patch_half_size_px)
-        reasons: list[str | None] = []
-        for i in range(n):
-            if not in_front[i] or p_body[i, 0] < 0.0:
-                reasons.append("behind")
-            elif not visible[i]:
-                reasons.append("left_image")
-            elif self.tracks[int(point_ids[i])].misses >= self.config.max_misses:
-                reasons.append("lost")
-            else:
-                reasons.append(None)
+        behind = (~np.asarray(in_front, dtype=bool) | (p_body[:, 0] < 0.0)).tolist()
+        visible, tracks, max_misses = np.asarray(visible, dtype=bool).tolist(), self.tracks, self.config.max_misses
+        reasons: list[str | None] = [
+            "behind" if b else "left_image" if not v else "lost" if tracks[pid].misses >= max_misses else None
+            for b, v, pid in zip(behind, visible, np.asarray(point_ids, dtype=np.int64).tolist())
+        ]
         return uv, reasons
 
     def new_points(self, image, t_s: float, T_world_body: np.ndarray, scans, history, live_X_world: np.ndarray, occupied_uv: np.ndarray, speed_mps: float | None) -> list[NewPoint]:
