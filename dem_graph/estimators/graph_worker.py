@@ -146,8 +146,9 @@ def _packed(arrays: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray | Non
 def _unpacked(packed: tuple[np.ndarray, np.ndarray | None]) -> dict[int, np.ndarray]:
     """:func:`_packed`'s dict again, each value a row of the packed array (a view: 0.1 against 0.5 ms
     for a window of 660 points and 40 keyframes, copied row by row). The estimator keeps the last
-    estimate of every landmark and keyframe, so a row keeps its result's array alive; those rows come
-    from the results before the window's cuts, about 20 KB each, 2 MB over the 100 m `paper` drive."""
+    estimate of every landmark and keyframe for the whole run; it copies a row to an array of its own
+    once the row has left the window (:func:`~dem_graph.estimators.graph_client._take_window`), so no
+    result's array stays alive for it."""
     keys, values = packed
     return {} if values is None else dict(zip(keys.tolist(), values))
 
