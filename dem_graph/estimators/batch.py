@@ -176,7 +176,11 @@ def _fit_to_held_poses(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, 
     for key in keys:
         if key in poses:
             held.add(gtsam.PriorFactorPose3(key, values.atPose3(key), pin))
-        start.insert(key, values.atPose3(key) if key in poses else values.atVector(key) if gtsam.Symbol(key).chr() == ord("v") else values.atConstantBias(key))
+            start.insert(key, values.atPose3(key))
+        elif gtsam.Symbol(key).chr() == ord("v"):
+            start.insert(key, values.atVector(key))
+        else:
+            start.insert(key, values.atConstantBias(key))
     fitted = gtsam.LevenbergMarquardtOptimizer(held, start, params).optimize()
     for key in poses:
         fitted.erase(key)

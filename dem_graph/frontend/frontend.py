@@ -406,12 +406,18 @@ class FrontEnd:
         p_body = transform_points(T_body_world, X_world)
         uv, in_front = self.camera.project(transform_points(self.T_cam_body, p_body))
         visible = self.camera.in_image(uv, self.config.image_margin_px + self.config.tracker.patch_half_size_px)
-        behind = (~np.asarray(in_front, dtype=bool) | (p_body[:, 0] < 0.0)).tolist()
-        visible, tracks, max_misses = np.asarray(visible, dtype=bool).tolist(), self.tracks, self.config.max_misses
-        reasons: list[str | None] = [
-            "behind" if b else "left_image" if not v else "lost" if tracks[pid].misses >= max_misses else None
-            for b, v, pid in zip(behind, visible, np.asarray(point_ids, dtype=np.int64).tolist())
-        ]
+        behind = ~np.asarray(in_front, dtype=bool) | (p_body[:, 0] < 0.0)
+        reasons: list[str | None] = []
+        # (Python scalars: the loop runs for every live point in every frame)
+        for b, v, pid in zip(behind.tolist(), np.asarray(visible, dtype=bool).tolist(), np.asarray(point_ids, dtype=np.int64).tolist()):
+            if b:
+                reasons.append("behind")
+            elif not v:
+                reasons.append("left_image")
+            elif self.tracks[pid].misses >= self.config.max_misses:
+                reasons.append("lost")
+            else:
+                reasons.append(None)
         return uv, reasons
 
     def new_points(self, image, t_s: float, T_world_body: np.ndarray, scans, history, live_X_world: np.ndarray, occupied_uv: np.ndarray, speed_mps: float | None) -> list[NewPoint]:
