@@ -105,3 +105,29 @@ def test_marginalising_while_driving_stays_close_to_the_full_smoothing():
     gaps, sigmas = _gaps_to_full_smoothing(g, full, guess)
     assert len(gaps) >= 10
     assert np.max(gaps / sigmas) < 0.05
+
+
+def test_the_window_read_at_once_is_the_smoothers_estimate_and_what_left_owns_its_arrays():
+    """After every update the graph reads the whole window in one call per kind: each keyframe's
+    pose, each landmark and each velocity must be, to the last bit, what the smoother gives for that
+    variable read alone; what the cuts marginalised is kept in arrays of its own."""
+    g, _, _, cuts = _drive(lag_s=0.35, cut_while_driving=True)
+    assert cuts >= 3
+    k = g.last_keyframe
+    v_world = np.array([2.0, 0.1, -0.05])
+    g.add_nav(k, v_world, gtsam.imuBias.ConstantBias(np.array([0.01, 0.0, 0.0]), np.zeros(3)), sigma_v_mps=0.1, sigma_bias=np.full(6, 0.01))
+    g.update()
+    estimate = g.isam.calculateEstimate()
+    window = g.window_estimates()
+    assert len(window[0]) >= 3 and len(window[1]) >= 10
+    for k_pose, T in window[0].items():
+        assert np.array_equal(T, estimate.atPose3(X(k_pose)).matrix())
+    for j, X_world in window[1].items():
+        assert np.array_equal(X_world, estimate.atPoint3(L(j)))
+    assert np.array_equal(g.velocities[k], np.asarray(estimate.atVector(gtsam.symbol("v", k))))
+    assert np.allclose(g.velocities[k], v_world, atol=1e-6)  # only its prior says where it is
+    left = [j for j in g.points if j not in window[1]]
+    assert len(left) >= 10
+    read_at_once = next(iter(window[1].values())).base  # the window's landmarks: rows of one array
+    assert all(X_world.base is read_at_once for X_world in window[1].values())
+    assert not any(np.shares_memory(g.points[j], read_at_once) for j in left)
