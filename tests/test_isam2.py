@@ -378,3 +378,33 @@ def test_effective_sample_size_of_correlated_frames():
     for k in range(1, 5):
         e[:, k] = 0.6 * e[:, k - 1] + np.sqrt(1 - 0.36) * rng.standard_normal(20000)
     assert 1.0 / np.var(e.mean(axis=1)) == pytest.approx(effective_sample_size(np.array([5]), 0.6)[0], rel=0.03)
+
+
+def test_a_landmark_bound_keeps_the_graph_small_and_the_rest_in_the_front_end(smoke_log, monkeypatch):
+    """``graph_max_landmarks`` n: no keyframe sends the graph observations of more than n landmarks,
+    and the new points beyond the bound are the front end's own (each updated with the pose held
+    fixed, moved with the graph's corrections, never a variable of the graph). The run keeps the
+    goals of every estimator on `smoke` (drift under 1 %, ATE under 3 cm), and the front end's own
+    points lie on the simulator's terrain as the graph's do: height RMSE under 3 cm, the DEM's goal."""
+    from dem_graph.estimators.graph_worker import InProcessGraph, KeyframeMessage
+
+    bound = 30
+    messages, own_ids = [], []
+    real_send, real_keep = InProcessGraph.send, Isam2Slam._keep_in_front_end
+    monkeypatch.setattr(InProcessGraph, "send", lambda self, m: (messages.append(m), real_send(self, m))[1])
+    monkeypatch.setattr(Isam2Slam, "_keep_in_front_end", lambda self, new: (own_ids.extend(p.point_id for p in new), real_keep(self, new))[1])
+    run = _run(smoke_log, isam2={"graph_max_landmarks": bound})
+    keyframes = [m for m in messages if isinstance(m, KeyframeMessage)]
+    assert max(len(set(m.landmarks.tolist())) for m in keyframes) <= bound
+    assert all(np.all(m.landmarks >= 0) for m in keyframes)
+    assert run.metrics.events["points_front_end_only"] == len(own_ids) > 100
+    m = run.metrics
+    assert m.trajectory.drift_percent < 1.0 and m.trajectory.ate_rmse_m < 0.03
+    terrain = smoke_log.ground_truth.elevation
+    pts = run.estimator.points
+    xyz = np.array(pts.xyz)
+    dz = xyz[:, 2] - terrain.height_at(xyz[:, 0], xyz[:, 1])
+    own = np.isin(pts.point_id, own_ids)
+    assert own.sum() > 100 and (~own).sum() > 100
+    assert np.sqrt(np.nanmean(dz[own] ** 2)) < 0.03
+    assert np.sqrt(np.nanmean(dz[~own] ** 2)) < 0.03

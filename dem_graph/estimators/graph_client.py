@@ -120,6 +120,13 @@ class Landmarks:
         return out
 
 
+def seeds_in_world(T_world_body: np.ndarray, new: list[NewPoint]) -> tuple[np.ndarray, np.ndarray]:
+    """New points' seeds carried from the body frame of ``T_world_body`` to the world: positions
+    (n,3), m, and covariances (n,3,3), m^2."""
+    R = T_world_body[:3, :3]
+    return transform_points(T_world_body, np.array([p.p_body for p in new])), R @ np.array([p.Sigma_body for p in new]) @ R.T
+
+
 def _take_window(kept: dict[int, np.ndarray], window: set[int], estimates: dict[int, np.ndarray]) -> set[int]:
     """The latest ``estimates`` (a result's window) into ``kept``; returns the new window's keys.
 
@@ -264,9 +271,7 @@ class GraphClient:
         new_landmarks = []
         started = None
         if new:
-            R = T[:3, :3]
-            X_world = transform_points(T, np.array([p.p_body for p in new]))
-            Sigma_world = R @ np.array([p.Sigma_body for p in new]) @ R.T
+            X_world, Sigma_world = seeds_in_world(T, new)
             landmarks = self.landmarks.start(len(new))
             for p, lm, Xw in zip(new, landmarks, X_world):
                 new_landmarks.append(NewLandmark(int(lm), Xw, p.kind, np.asarray(p.p_body, dtype=float), np.asarray(p.Sigma_body, dtype=float)))
@@ -300,7 +305,8 @@ class GraphClient:
     def apply(self, r: GraphResult, live: LivePoints) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
         """Take the graph's result: the smoothed keyframe ``r.k`` moves the last keyframe and the
         keyframes sent since (a world-frame correction), its marginal (if asked for) becomes the
-        anchor, and the live points take the graph's estimates. Returns the correction (None when
+        anchor, and the live points take the graph's estimates (the front end's own points, beyond
+        ``graph_max_landmarks``, move with the correction). Returns the correction (None when
         the keyframe was sent before a restart), its nearest pose ``C`` (identity then) and the mask
         of the live points still in the graph (the others were marginalised).
 
@@ -336,7 +342,11 @@ class GraphClient:
         continuing = self.landmarks.continuing()
         keep = np.ones(len(live), dtype=bool)
         points = r.points
+        own = []  # the front end's own points (graph_max_landmarks): placed from poses the correction has moved
         for i, lm in enumerate(live.landmark.tolist()):
+            if lm < 0:
+                own.append(i)
+                continue
             X_lm = points.get(lm)
             if X_lm is not None:
                 live.X[i] = X_lm + later_steps.get(lm, 0.0)
@@ -350,6 +360,8 @@ class GraphClient:
                 self.points[lm] = live.X[i].copy()
             else:
                 keep[i] = False
+        if own and correction is not None:
+            live.X[own] = transform_points(C, live.X[own])
         return correction, C, keep
 
     def _later_steps(self) -> dict[int, np.ndarray]:
@@ -365,7 +377,7 @@ class GraphClient:
         and the current pose ``T_world_body``'s covariance."""
         self._counters["graph_restarts"] += 1
         k = len(self.keyframe_t_s) - 1
-        priors = {int(lm): (live.X[i].copy(), self.anchor.point_covariance(live.X[i], live.info[i])) for i, lm in enumerate(live.landmark)}
+        priors = {int(lm): (live.X[i].copy(), self.anchor.point_covariance(live.X[i], live.info[i])) for i, lm in enumerate(live.landmark) if lm >= 0}
         self.landmarks.entered(priors, k)
         self.landmarks.drop_links()
         self._marginal_asked = False
@@ -404,4 +416,4 @@ class GraphClient:
             counters["graph_results_late"] = int(np.count_nonzero(self._graph_lag))  # taken after the next keyframe was sent
 
 
-__all__ = ["GraphClient", "Landmarks", "PoseAnchor"]
+__all__ = ["GraphClient", "Landmarks", "PoseAnchor", "seeds_in_world"]

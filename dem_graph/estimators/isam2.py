@@ -49,7 +49,7 @@ import numpy as np
 from dem_graph.datasets.events import CameraFrame, ImuSample
 from dem_graph.estimators.base import SMOOTHED_TRAJECTORY, EstimatorResult, FrameDrivenEstimator, FrameRecord
 from dem_graph.estimators.batch_log import BatchLog
-from dem_graph.estimators.graph_client import GraphClient
+from dem_graph.estimators.graph_client import GraphClient, seeds_in_world
 from dem_graph.estimators.graph_worker import GraphResult
 from dem_graph.estimators.imu_preintegration import ImuBuffer, gyro_rotation, with_rotation
 from dem_graph.estimators.isam2_config import Isam2Config, Isam2Options
@@ -183,6 +183,8 @@ class Isam2Slam(FrameDrivenEstimator):
         if is_keyframe:
             tg = time.perf_counter()
             landmarks, uv, sigma_px, point_steps = filt.keyframe_observations(m, client.next_keyframe)
+            in_graph = landmarks >= 0  # (the front end's own points were updated all the same)
+            landmarks, uv, sigma_px, point_steps = landmarks[in_graph], uv[in_graph], sigma_px[in_graph], point_steps[in_graph]
             graph_s += time.perf_counter() - tg
         tm = time.perf_counter()
         filt.end_frame(event.t_s)
@@ -255,8 +257,11 @@ class Isam2Slam(FrameDrivenEstimator):
             segment = tracks[int(live.ids[i])].segment
             if segment == live.segment[i]:
                 continue
-            old[j] = live.landmark[i]
             Sigma_old = np.linalg.inv(live.info[i])
+            if live.landmark[i] < 0:  # a point of the front end's only: no landmark to tie, the same widening
+                live.follow(i, int(live.landmark[i]), segment, np.linalg.inv(Sigma_old + sigma2 * np.eye(3)))
+                continue
+            old[j] = live.landmark[i]
             new = self._client.split_landmark(int(live.ids[i]), int(old[j]), Sigma_old)
             live.follow(i, new, segment, np.linalg.inv(Sigma_old + sigma2 * np.eye(3)))
             if self._batch is not None:
@@ -273,13 +278,28 @@ class Isam2Slam(FrameDrivenEstimator):
                 if imu is None:
                     self.frontend.counters["imu_spans_missing"] += 1
             self._imu.drop_before(t_s)
+        budget = self.config.graph_landmark_budget
+        own: list[NewPoint] = []
+        if budget is not None and new:
+            room = max(0, budget - int(np.count_nonzero(self.live.landmark >= 0)))
+            new, own = new[:room], new[room:]
         started = self._client.send_keyframe(t_s, self._filter.T, self._filter.P_loc, observations, new, point_steps, imu)
         if started is not None:
             landmarks, X_world, Sigma_world = started
             self.live.add(np.array([p.point_id for p in new]), landmarks, X_world, Sigma_world)
             if self._batch is not None:
                 self._batch.add_seeds(len(self._frames), new, landmarks)
+        if own:
+            self._keep_in_front_end(own)
         self._frames_since_keyframe = 0
+
+    def _keep_in_front_end(self, new: list[NewPoint]) -> None:
+        """New points beyond ``graph_max_landmarks``: live points of the front end only, numbered
+        ``-1 - point_id`` where a landmark's number would be (never sent to the graph)."""
+        X_world, Sigma_world = seeds_in_world(self._filter.T, new)
+        ids = np.array([p.point_id for p in new], dtype=np.int64)
+        self.live.add(ids, -1 - ids, X_world, Sigma_world)
+        self.frontend.counters["points_front_end_only"] += len(new)
 
     # --- the graph's results -----------------------------------------------------------------
     def _take_results(self, results: list[GraphResult], restart: bool = True) -> float:
@@ -319,11 +339,16 @@ class Isam2Slam(FrameDrivenEstimator):
         keyframe pose's marginal carried to it (first order)."""
         return self._client.anchor.point_covariance(self.live.X[i], self.live.info[i])
 
+    def _own_xyz(self, i: int) -> np.ndarray | None:
+        """Live point ``i``'s position to archive: its own for a point of the front end's only; None
+        for a landmark (the graph's latest estimate is taken when asked for)."""
+        return self.live.X[i] if self.live.landmark[i] < 0 else None
+
     def _archive(self, i: int, reason: str) -> None:
-        self._archived.archive(int(self.live.ids[i]), reason, self._point_covariance_world(i))
+        self._archived.archive(int(self.live.ids[i]), reason, self._point_covariance_world(i), self._own_xyz(i))
 
     def _drop_points(self) -> np.ndarray:
-        keep, uv = self._archived.drop_points(self.live.ids, self.live.X, self._filter.T, lambda i: (self._point_covariance_world(i), None))
+        keep, uv = self._archived.drop_points(self.live.ids, self.live.X, self._filter.T, lambda i: (self._point_covariance_world(i), self._own_xyz(i)))
         self.live.keep(keep)
         return uv
 

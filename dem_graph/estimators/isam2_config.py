@@ -56,6 +56,14 @@ class Isam2Options(StrictModel):
         description="run the graph (iSAM2 updates, the window's cut, marginals) in a second process, on another core: a frame then costs the front end's time, "
         "and the graph's results reach the front end one or more keyframes later (a run then depends on the timing); false: each keyframe's update ends in its own frame",
     )
+    graph_max_landmarks: int | None = Field(
+        None,
+        ge=1,
+        description="live points that are landmarks of the graph, at most: a new point beyond it stays in the front end only (its own estimate, "
+        "updated at each keyframe with the pose held fixed and moved with the graph's corrections), so that an update's cost does not grow "
+        "with --max-points. New laser points are taken before camera points. Unset: 150 with graph_process and no graph_delay_keyframes "
+        "(above the default max_points, so the default vehicle run is unchanged), else no bound",
+    )
     graph_max_lag: int = Field(
         3,
         ge=1,
@@ -124,6 +132,16 @@ class Isam2Config(SharedSettings, Isam2Options):
         if self.observation_every is not None:
             return self.observation_every
         return 2 if self.graph_process and not self.graph_delay_keyframes else 1
+
+    @property
+    def graph_landmark_budget(self) -> int | None:
+        """Live points that may be landmarks of the graph (None: all): ``graph_max_landmarks``; unset,
+        150 with the graph in a second process whose results come when ready; no bound for the batch."""
+        if self.batch:
+            return None
+        if self.graph_max_landmarks is not None:
+            return self.graph_max_landmarks
+        return 150 if self.graph_process and not self.graph_delay_keyframes else None
 
     @property
     def graph_placement(self) -> tuple[bool, int]:

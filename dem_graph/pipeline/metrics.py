@@ -123,7 +123,8 @@ def laser_cells_error_text(e: HeightErrors) -> str:
 
 def graph_update_line(g: GraphUpdateTiming, events: dict) -> str:
     """The graph's updates in one line: their time, the window's cuts, how late the results came and
-    the keyframes merged while the graph was behind."""
+    the keyframes merged while the graph was behind, and the new points the graph's landmark bound
+    kept in the front end."""
     line = f"graph: {g.updates} updates, median {g.total.median_ms:.1f} ms, p95 {g.total.p95_ms:.1f} ms"
     cut, rebuild = g.phases.get("cut"), g.phases.get("rebuild")
     if cut is not None and rebuild is not None:
@@ -136,6 +137,9 @@ def graph_update_line(g: GraphUpdateTiming, events: dict) -> str:
     merged = int(events.get("keyframes_merged", 0))
     if merged:
         line += f"; {merged} keyframes merged while the graph was behind"
+    own = int(events.get("points_front_end_only", 0))
+    if own:
+        line += f"; {own} new points kept in the front end only (graph_max_landmarks)"
     return line
 
 
