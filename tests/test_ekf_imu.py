@@ -84,7 +84,7 @@ def ptpm_with_imu():
     from dem_graph.pipeline.live import make_estimator
     from dem_graph.pipeline.run import feed
 
-    log = SimulatedSequence.from_config(scenario("smoke", seed=1, length_m=20.0))
+    log = SimulatedSequence.from_config(scenario("smoke", seed=1, length_m=10.0))
     config = RunConfig.model_validate({"estimator": "ptpm"})
     estimator = make_estimator(log.rig, log.T_world_body_initial, log.t_start_s, log.has_odometry, config)
     for _ in feed(estimator, log, finish=False):
@@ -93,7 +93,7 @@ def ptpm_with_imu():
 
 
 def test_ptpm_estimates_the_gyroscope_bias_within_its_covariance(ptpm_with_imu):
-    """PTPM on 20 m of `smoke` with the simulated IMU: the filter's gyroscope bias at the end is
+    """PTPM on 10 m of `smoke` with the simulated IMU: the filter's gyroscope bias at the end is
     within its own covariance of the simulator's (3-dimensional NEES under the chi-square 99.9 %
     point, 16.3), and every frame's rotation came from the gyroscope."""
     log, estimator = ptpm_with_imu
