@@ -1,7 +1,7 @@
 # Two commands do everything on a fresh Debian/Ubuntu machine with Python >= 3.10:
 #   make demo   set up, simulate the default scenario (dataset + picture), compare GM, PTPM, iSAM2 and iSAM2-batch on it (after the odometry alone)
 #               (one table, run folders and a report under out/demo/compare/)
-#   make test   set up, compile the numba kernels once, check the import layers (pyproject.toml), build the docs site (mkdocs build --strict:
+#   make test   set up, check the import layers (pyproject.toml), build the docs site (mkdocs build --strict:
 #               a broken link or a stale API reference fails), then run the test suite (three workers,
 #               pytest-xdist, a test file's tests on one worker so that its fixtures are made once, the
 #               heaviest files first (tests/conftest.py); docs/benchmarks.md has the suite's time;
@@ -20,12 +20,9 @@ demo: setup
 # the tests start many Python processes (the graph's, the CLI's, notebook kernels): let them keep the
 # package's compiled bytecode rather than compile it again each time (0.1-0.3 s a process here)
 test: export PYTHONDONTWRITEBYTECODE =
-# the numba kernels are compiled into their cache first (tests/warm_kernels.py, beside the lint and
-# the docs build): in a clean clone each test process would otherwise compile them again
 test: setup
-	$(BIN)/python tests/warm_kernels.py & warm=$$!; \
-	$(BIN)/lint-imports --no-logo && NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir $(OUT)/site; checks=$$?; \
-	wait $$warm; exit $$checks
+	$(BIN)/lint-imports --no-logo
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir $(OUT)/site
 	$(BIN)/python -m pytest -q -n 3 --dist loadfile --no-loadscope-reorder
 
 bench: setup
