@@ -250,9 +250,10 @@ class KeyframeGraph:
         xyz = np.ascontiguousarray(gtsam.utilities.extractVectors(values, "l")) if point_ids else np.empty((0, 3))
         rows = gtsam.utilities.extractPose3(values)  # [R row by row (9), t (3)] per keyframe
         v_world = np.ascontiguousarray(gtsam.utilities.extractVectors(values, "v")) if nav_ids else np.empty((0, 3))
-        if (len(xyz), len(rows), len(v_world)) != (len(point_ids), len(pose_ids), len(nav_ids)):
-            raise DemGraphError(
-                f"the smoother holds {len(xyz)} landmarks, {len(rows)} poses and {len(v_world)} velocities; the window has {len(point_ids)}, {len(pose_ids)} and {len(nav_ids)}"
+        if (len(xyz), len(rows), len(v_world)) != (len(point_ids), len(pose_ids), len(nav_ids)):  # (never seen: a restart, not a crash)
+            raise GraphUpdateError(
+                f"the smoother at keyframe {self.last_keyframe} holds {len(xyz)} landmarks, {len(rows)} poses and {len(v_world)} velocities; "
+                f"its window has {len(point_ids)}, {len(pose_ids)} and {len(nav_ids)}"
             )
         T_transposed = np.zeros((len(pose_ids), 4, 4))  # each pose in column order, as Pose3.matrix() gives it
         T_transposed[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1)
