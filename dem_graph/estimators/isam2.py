@@ -249,7 +249,9 @@ class Isam2Slam(FrameDrivenEstimator):
 
     def _split_refreshed(self, idx: np.ndarray) -> np.ndarray:
         """Points whose patch was refreshed in this frame now follow a new landmark (tied to the
-        old one at the next keyframe); returns, per match, the old landmark or -1."""
+        old one at the next keyframe), their covariance widened by the link's; a point of the front
+        end's own (beyond ``graph_max_landmarks``) keeps its number and is only widened. Returns, per
+        match, the old landmark or -1."""
         live, tracks = self.live, self.frontend.tracks
         old = np.full(len(idx), -1, dtype=np.int64)
         sigma2 = self.config.split_link_sigma_m**2
@@ -258,14 +260,13 @@ class Isam2Slam(FrameDrivenEstimator):
             if segment == live.segment[i]:
                 continue
             Sigma_old = np.linalg.inv(live.info[i])
-            if live.landmark[i] < 0:  # a point of the front end's only: no landmark to tie, the same widening
-                live.follow(i, int(live.landmark[i]), segment, np.linalg.inv(Sigma_old + sigma2 * np.eye(3)))
-                continue
-            old[j] = live.landmark[i]
-            new = self._client.split_landmark(int(live.ids[i]), int(old[j]), Sigma_old)
-            live.follow(i, new, segment, np.linalg.inv(Sigma_old + sigma2 * np.eye(3)))
-            if self._batch is not None:
-                self._batch.add_link(int(old[j]), new)
+            landmark = int(live.landmark[i])
+            if landmark >= 0:
+                old[j] = landmark
+                landmark = self._client.split_landmark(int(live.ids[i]), landmark, Sigma_old)
+                if self._batch is not None:
+                    self._batch.add_link(int(old[j]), landmark)
+            live.follow(i, landmark, segment, np.linalg.inv(Sigma_old + sigma2 * np.eye(3)))
         return old
 
     def _send_keyframe(self, t_s: float, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint], point_steps: np.ndarray) -> None:
