@@ -108,6 +108,12 @@ class Estimator(abc.ABC):
         """An IMU sample (the rig's ``imu`` frame). The default ignores it: a run with or without the
         stream is then the same run."""
 
+    def idle(self) -> bool:
+        """Work that need not wait for the next event, done while the sensors are quiet (a run at the
+        camera's rate calls it between events when there is time): True if anything was done. The
+        default has nothing to do."""
+        return False
+
     def finish(self) -> None:  # noqa: B027 - a hook with nothing to do by default
         """The log has ended: process anything held back."""
 

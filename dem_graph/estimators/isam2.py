@@ -87,6 +87,7 @@ class Isam2Slam(FrameDrivenEstimator):
         self._archived = PointArchive(self.frontend)  # the graph's latest estimate of each landmark is asked for in result()
         self._frames: list[FrameRecord] = []
         self._frames_since_keyframe = 0
+        self._idle_worker_s = 0.0  # the graph's time on the results taken between frames (idle), until the next frame's record
         # the IMU's samples until the graph has them (motion.use_imu and a rig with an imu section)
         self._imu = ImuBuffer(rig.imu) if c.motion.use_imu and rig.imu is not None else None
         self.keyframe_hooks: list = []  # called as hook(self) after each keyframe's result is taken, in-process graph only (studies)
@@ -124,6 +125,17 @@ class Isam2Slam(FrameDrivenEstimator):
         if self._imu is not None:
             self._imu.take(event)
 
+    def idle(self) -> bool:
+        """The graph's results that came back from the second process since the last frame, applied
+        now rather than at the start of the next frame: the same results in the same order (no frame
+        runs between), off the frame's path. Nothing here in a run whose results come at fixed points
+        (in this process, or a fixed delay: each frame takes them all)."""
+        results = self._client.results()
+        if not results:
+            return False
+        self._idle_worker_s += self._take_results(results)
+        return True
+
     def finish(self) -> None:
         super().finish()
         pending, final = self._client.finish()
@@ -139,7 +151,8 @@ class Isam2Slam(FrameDrivenEstimator):
         timing = {}
         t0 = time.perf_counter()
         # results that came back since the last frame (a second process's): taken before this frame's search
-        timing["graph_worker"] = self._take_results(client.results())
+        timing["graph_worker"] = self._take_results(client.results()) + self._idle_worker_s  # (and those taken between frames)
+        self._idle_worker_s = 0.0
         tp = time.perf_counter()
         graph_s = tp - t0
         if self.frontend.begin_frame(event.t_s, event.textureless):

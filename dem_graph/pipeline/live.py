@@ -143,6 +143,8 @@ class LivePipeline:
         self.latest: LiveUpdate | None = None  # the last update given
         self.map_timing_s: list[float] = []  # the live map's time per frame update (benchmarks)
         self.frame_timing_s: list[float] = []  # the whole frame: the estimator's events since the last update and the live map
+        self.idle_timing_s: list[float] = []  # each :meth:`idle` that did something: its time (off the frames' path)
+        self._map_due = False  # the map is still to catch up with the estimator's last frame (a run at the camera's rate)
         P0 = np.eye(6) * self.config.motion.initial_sigma_pose**2
         self._start = (float(t_start_s), np.array(T_world_body_initial, dtype=float), P0)
         self._frame_t: deque[float] = deque()  # times of the frames in the revision window
@@ -239,7 +241,10 @@ class LivePipeline:
         ends = [t for t in self._last_t.values() if math.isfinite(t)]
         if ends:
             self._check_silence(max(ends))  # a stream that fell silent for good
-        return self._timed(self.estimator.finish)
+        update = self._timed(self.estimator.finish)
+        if self._map_due:  # (at the camera's rate: the map's catch-up with the last frame, no idle time coming)
+            self._update_map(self._frame_t[-1])
+        return update
 
     def result(self):
         """Everything the estimator has estimated so far (:class:`~dem_graph.estimators.base.EstimatorResult`)."""
@@ -297,6 +302,38 @@ class LivePipeline:
             self.counters[counter] += 1
             log.warning("no %s for %.2f s (since %.3f s): %s", what, t_s - last, last, consequence)
 
+    def idle(self) -> bool:
+        """Work done while the sensors are quiet (a run at the camera's rate calls it between events
+        when there is time): the estimator's own (:meth:`Estimator.idle`: the graph's results that came
+        back), then the map brought up to the estimator's poses (see :meth:`_update_map`). True if
+        anything was done (its time in :attr:`idle_timing_s`)."""
+        t0 = time.perf_counter()
+        took = self.estimator.idle()
+        if not (took or self._map_due) or not self._frame_t:
+            return took
+        self._update_map(self._frame_t[-1])
+        self.idle_timing_s.append(time.perf_counter() - t0)
+        return True
+
+    def _update_map(self, t_now: float, catch_up: bool = True) -> np.ndarray:
+        """The pose window over the frames kept, from the estimator's latest poses; with ``catch_up``,
+        the map's scans moved to it and the points that left the estimator added. Returns the
+        window's newest pose."""
+        est = self.estimator
+        t, T, P = est.recent_poses(len(self._frame_t))
+        if len(self._frame_t) == est.frames_done and self._start[0] < t[0]:  # the start pose is still inside the window
+            t, T, P = np.r_[self._start[0], t], np.concatenate([self._start[1][None], T]), np.concatenate([self._start[2][None], P])
+        self._window = PoseWindow(t, T, P)
+        # every scan still open to revision lies inside the window: the oldest frame kept is before the cut
+        self.map.freeze_before(t_now - self.map.window_s)
+        if catch_up:
+            self.map.revise(self._window.at)
+            xyz, cov, created, self._points_seen = est.archived_points_since(self._points_seen)
+            if len(xyz) and self.config.dem.map_points:
+                self.map.add_points(xyz, cov[:, 2, 2], created)
+            self._map_due = False
+        return T[-1]
+
     def _frame_done(self) -> LiveUpdate:
         est = self.estimator
         record = est.last_frame
@@ -306,19 +343,13 @@ class LivePipeline:
         self._frame_t.append(t_now)
         while len(self._frame_t) > 2 and self._frame_t[1] < t_now - window_s:
             self._frame_t.popleft()
-        t, T, P = est.recent_poses(len(self._frame_t))
-        if len(self._frame_t) == est.frames_done and self._start[0] < t[0]:  # the start pose is still inside the window
-            t, T, P = np.r_[self._start[0], t], np.concatenate([self._start[1][None], T]), np.concatenate([self._start[2][None], P])
-        self._window = PoseWindow(t, T, P)
-        # every scan still open to revision lies inside the window: the oldest frame kept is before the cut
-        self.map.freeze_before(t_now - window_s)
-        self.map.revise(self._window.at)
-        xyz, cov, created, self._points_seen = est.archived_points_since(self._points_seen)
-        if len(xyz) and self.config.dem.map_points:
-            self.map.add_points(xyz, cov[:, 2, 2], created)
+        # at the camera's rate the map catches up with the estimator (scans moved, points that left
+        # added) between frames, in idle time, and the frame's local map holds what was done before
+        # it; a frame does it itself when no idle time came since the last one
+        T_now = self._update_map(t_now, catch_up=not self.config.realtime or self._map_due)
+        self._map_due = self.config.realtime
         speed = self._speed()
         area = FocusArea.for_speed(self.config.frontend.focus, self.rig, speed)
-        T_now = T[-1]
         local = self.map.local(T_now, (area.x_near_m, area.x_far_m), area.half_width_m, t_now, self.config.dem.traversability_window)
         map_s = self._map_s + time.perf_counter() - t0
         self.map_timing_s.append(map_s)

@@ -43,6 +43,11 @@ class LiveMapMetrics(MetricsModel):
     update_p95_ms: Number
     whole_frame_median_ms: Number  # the estimator on the frame's events (front end included) and the live map
     whole_frame_p95_ms: Number
+    # done between frames, off their path (a run at the camera's rate, with the graph in a second
+    # process): the graph's results taken and the map's scans moved with them, each time there was any
+    idle_updates: int = 0
+    idle_median_ms: Number = float("nan")
+    idle_p95_ms: Number = float("nan")
     resident_memory_mb: dict[str, float] | None = None  # the process's, at frames 150, 1500 and the last
     scans: int
     returns: int  # laser returns placed
@@ -149,6 +154,7 @@ class LiveRun:
         m = p.map
         timing = TimingStats.from_seconds(p.map_timing_s)
         whole = TimingStats.from_seconds(p.frame_timing_s)
+        idle = TimingStats.from_seconds(p.idle_timing_s)
         dem, truth = self.final_map, self.truth
         covered = int(dem.covered.sum()) if dem is not None else 0
         height = None
@@ -161,6 +167,9 @@ class LiveRun:
             update_p95_ms=timing.p95_ms,
             whole_frame_median_ms=whole.median_ms,
             whole_frame_p95_ms=whole.p95_ms,
+            idle_updates=len(p.idle_timing_s),
+            idle_median_ms=idle.median_ms,
+            idle_p95_ms=idle.p95_ms,
             resident_memory_mb=self.memory.summary(),
             scans=c["scans"],
             returns=c["returns"],

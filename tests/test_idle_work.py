@@ -1,0 +1,185 @@
+"""Work done between frames in a run at the camera's rate: when it is done, and that it changes
+nothing but when.
+
+Truths: a clock of the test's own (every event's due time and every piece of work's cost set by
+hand); the same log run as fast as possible, whose map and trajectory the idle run must give bit
+for bit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dem_graph.datasets.events import CameraFrame, ImuSample
+from dem_graph.pipeline import run as run_module
+from dem_graph.pipeline.config import RunConfig
+from dem_graph.pipeline.live import LivePipeline
+from dem_graph.pipeline.run import IDLE_MIN_WAIT_S, feed
+
+FRAME_PERIOD_S, IMU_PERIOD_S = 0.040, 0.005
+FRAME_COST_S, IMU_COST_S, IDLE_COST_S = 0.015, 0.0002, 0.004
+
+
+class _Clock:
+    """perf_counter and sleep of a wall clock that moves only when told."""
+
+    def __init__(self):
+        self.now_s = 100.0
+
+    def perf_counter(self) -> float:
+        return self.now_s
+
+    def sleep(self, seconds: float) -> None:
+        self.now_s += max(seconds, 0.0)
+
+
+class _Log:
+    def __init__(self, duration_s: float):
+        frames = [CameraFrame(k * FRAME_PERIOD_S, np.zeros((2, 2), np.uint8), k) for k in range(int(duration_s / FRAME_PERIOD_S))]
+        imu = [ImuSample(k * IMU_PERIOD_S + 0.001, np.zeros(3), np.zeros(3), k) for k in range(int(duration_s / IMU_PERIOD_S))]
+        self._events = sorted(frames + imu, key=lambda e: e.t_s)
+
+    def events(self):
+        return iter(self._events)
+
+    def event_count(self) -> int:
+        return len(self._events)
+
+
+class _Estimator:
+    """Records when each event was handed over and when its idle work ran, on the test's clock."""
+
+    name = "fake"
+
+    def __init__(self, clock: _Clock):
+        self.clock = clock
+        self.handed: list[tuple[float, float, bool]] = []  # (the event's time, the clock when handed, a camera frame)
+        self.idle_at: list[float] = []
+
+    def _take(self, event, cost_s: float, frame: bool) -> None:
+        self.handed.append((event.t_s, self.clock.now_s, frame))
+        self.clock.now_s += cost_s
+
+    def on_frame(self, event):
+        self._take(event, FRAME_COST_S, True)
+
+    def on_imu(self, event):
+        self._take(event, IMU_COST_S, False)
+
+    def idle(self) -> bool:
+        self.idle_at.append(self.clock.now_s)
+        self.clock.now_s += IDLE_COST_S
+        return True
+
+    def finish(self):
+        pass
+
+
+@pytest.fixture
+def clock(monkeypatch) -> _Clock:
+    c = _Clock()
+    monkeypatch.setattr(run_module, "time", c)
+    return c
+
+
+def test_idle_work_runs_only_with_the_next_frame_far_enough_and_no_event_is_handed_early_or_frame_late(clock):
+    est = _Estimator(clock)
+    list(feed(est, _Log(2.0), realtime=True))
+    wall0 = est.handed[0][1]
+    due = np.array([t for t, _, _ in est.handed]) + wall0
+    handed = np.array([w for _, w, _ in est.handed])
+    frame = np.array([f for _, _, f in est.handed])
+    assert np.all(handed >= due - 1e-12)  # never before its time
+    np.testing.assert_allclose(handed[frame], due[frame], atol=1e-12)  # no frame made late by idle work
+    # idle work only while the next camera frame (one interval after the last) was at least IDLE_MIN_WAIT_S away
+    frame_t = np.array([t for t, _, f in est.handed if f])
+    for at in est.idle_at:
+        t_log = at - wall0
+        last = frame_t[frame_t <= t_log + 1e-12]
+        assert len(last) >= 2  # (the interval is known from the second frame on)
+        assert last[-1] + FRAME_PERIOD_S - t_log >= IDLE_MIN_WAIT_S - 1e-12
+    # and it came in every interval after the second frame: the frames leave 25 ms of each 40 free
+    intervals = np.floor((np.array(est.idle_at) - wall0) / FRAME_PERIOD_S + 1e-9).astype(int)
+    assert set(range(1, len(frame_t) - 1)) <= set(intervals.tolist())
+
+
+def test_a_run_replayed_as_fast_as_possible_does_no_idle_work(clock):
+    est = _Estimator(clock)
+    list(feed(est, _Log(0.5), realtime=False))
+    assert est.idle_at == []
+
+
+def _run(log, realtime: bool, idle_after_frames: bool, n_frames: int, graph=None):
+    """The pipeline over the log's first ``n_frames`` frames, ``idle()`` called after each frame's update
+    (``idle_after_frames``); ``graph(client)`` may wrap the estimator's graph first."""
+    pipeline = LivePipeline.for_sequence(log, RunConfig(estimator="isam2", realtime=realtime))
+    held = graph(pipeline.estimator._client) if graph is not None else None
+    est, pipeline.took = pipeline.estimator, []
+    est_idle = est.idle
+    est.idle = lambda: pipeline.took.append(est_idle()) or pipeline.took[-1]
+    frames = 0
+    for e in log.events():
+        update = pipeline.on_event(e)
+        if update is not None:
+            frames += 1
+            if held is not None:
+                held.release()
+            if idle_after_frames:
+                pipeline.idle()
+        if frames >= n_frames and isinstance(e, CameraFrame):
+            break
+    pipeline.finish()
+    return pipeline
+
+
+def _same_map(a: LivePipeline, b: LivePipeline) -> None:
+    da, db = a.map.global_dem(None), b.map.global_dem(None)
+    assert da.geometry == db.geometry
+    for name in ("elevation", "variance", "count"):
+        np.testing.assert_array_equal(da.layers[name], db.layers[name])
+
+
+def test_the_map_caught_up_between_frames_is_the_map_of_a_run_as_fast_as_possible(smoke_log):
+    fast = _run(smoke_log, realtime=False, idle_after_frames=False, n_frames=40)
+    live = _run(smoke_log, realtime=True, idle_after_frames=True, n_frames=40)
+    _same_map(fast, live)
+    np.testing.assert_array_equal(fast.result().trajectory().positions_xyz, live.result().trajectory().positions_xyz)
+    # every frame's catch-up was done between frames, but for the frame held at the end (done in finish)
+    assert len(live.idle_timing_s) == live.updates - 1
+    assert fast.idle_timing_s == []
+
+
+class _HeldGraph:
+    """The in-process graph, its results handed over only once released: as results that come back
+    from a second process between frames."""
+
+    def __init__(self, client):
+        self.inner, self.released = client._graph, []
+        client._graph = self
+
+    def release(self) -> None:
+        self.released += self.inner.results()
+
+    def results(self):
+        out, self.released = self.released, []
+        return out
+
+    def finish(self):
+        pending, final = self.inner.finish()
+        return self.released + pending, final
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
+def test_graph_results_taken_between_frames_give_the_trajectory_of_results_taken_at_the_next_frame(smoke_log):
+    at_next_frame = _run(smoke_log, realtime=True, idle_after_frames=False, n_frames=40, graph=_HeldGraph)
+    between = _run(smoke_log, realtime=True, idle_after_frames=True, n_frames=40, graph=_HeldGraph)
+    a, b = at_next_frame.result(), between.result()
+    np.testing.assert_array_equal(a.trajectory().positions_xyz, b.trajectory().positions_xyz)
+    np.testing.assert_array_equal(a.trajectory().orientations_quat_xyzw, b.trajectory().orientations_quat_xyzw)
+    np.testing.assert_array_equal(a.pose_covariances(), b.pose_covariances())
+    # every frame's result (each frame a keyframe) came between frames, and the estimator took it there
+    assert len(between.took) == between.updates - 1 and all(between.took)
+    assert between.estimator._client.poses.keys() == at_next_frame.estimator._client.poses.keys()
