@@ -82,7 +82,8 @@ def test_graph_client_moves_what_it_sent_by_the_graphs_correction(smoke_log):
     client = GraphClient(Isam2Config(), smoke_log.rig, np.eye(4), np.eye(6) * 1e-8, 0.0, Counter())
     client.carry(_translation(0.05), np.eye(6) * 1e-4)
     empty = (np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros(0))
-    assert client.send_keyframe(0.04, _translation(0.05), np.eye(6) * 1e-4, empty, []) is None
+    client.open_keyframe(0.04, _translation(0.05))
+    assert client.send_keyframe(np.eye(6) * 1e-4, empty, []) is None
     assert [r.k for r in client.results()] == [1] and client.keyframe_t_s == [0.0, 0.04]
     live = LivePoints()
     live.add([10, 11, 12], client.landmarks.start(3), np.array([[5.0, 0.0, 0.0], [6.0, 1.0, 0.0], [7.0, -1.0, 0.0]]), np.tile(np.eye(3) * 1e-2, (3, 1, 1)))
@@ -140,7 +141,8 @@ def test_graph_client_asks_for_a_marginal_at_most_every(smoke_log, every_s, marg
     client.carry(_translation(0.05), np.eye(6) * 1e-4)
     empty = (np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros(0))
     P_loc = np.eye(6) * 2e-4
-    client.send_keyframe(0.04, _translation(0.05), P_loc, empty, [])
+    client.open_keyframe(0.04, _translation(0.05))
+    client.send_keyframe(P_loc, empty, [])
     (r,) = client.results()
     assert (r.marginal is not None) == marginal
     client.apply(r, LivePoints())

@@ -93,6 +93,9 @@ class Estimator(abc.ABC):
     """Consumes a sequence's events in time order; :meth:`result` may be called at any time."""
 
     name: str = "estimator"
+    # set by a live pipeline at the camera's rate: a frame's work that need not come before its pose
+    # and the map may wait for :meth:`idle` (an estimator without such work ignores it)
+    defer_keyframe_work: bool = False
 
     @abc.abstractmethod
     def on_odometry(self, event: Odometry) -> None: ...

@@ -186,6 +186,7 @@ class GraphClient:
         # keyframes sent whose result is not back: the step each of their observations gave its point
         # (landmark -> metres, world frame), taken again on top of the graph's older estimate (apply)
         self._steps_in_flight: dict[int, dict[int, np.ndarray]] = {}
+        self._opened: tuple | None = None  # the keyframe opened and not yet sent: (k, t_s, T, U_kf, Q_kf, the keyframe before's time)
         self.imu_bias = np.zeros(6)  # the graph's latest IMU biases [accel m/s^2, gyro rad/s] (zero until it has some)
 
     @property
@@ -248,26 +249,44 @@ class GraphClient:
         self._frame_anchor.append((k, invert(self.T_kf) @ T_world_body))
 
     # --- keyframes ---------------------------------------------------------------------------
+    def open_keyframe(self, t_s: float, T_world_body: np.ndarray) -> float:
+        """A keyframe at ``t_s`` with the pose ``T_world_body``: numbered, and the frames from this one
+        on ride on it (:meth:`anchor_frame`); its message follows with :meth:`send_keyframe`, before
+        any result is taken. Returns the time of the keyframe before it."""
+        T = T_world_body
+        t_prev = self.keyframe_t_s[-1]
+        k = len(self.keyframe_t_s) - 1
+        if t_s > t_prev:  # else: the first frame, at the start pose's time
+            k += 1
+            self.keyframe_t_s.append(t_s)
+        self._opened = (k, t_s, T.copy(), self.U_kf, self.Q_kf, t_prev)
+        self.poses.setdefault(k, T.copy())  # until the graph's estimate is back
+        self.T_kf = T.copy()
+        self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))
+        return t_prev
+
+    @property
+    def keyframe_open(self) -> bool:
+        """A keyframe is open (:meth:`open_keyframe`) and its message not sent yet."""
+        return self._opened is not None
+
     def send_keyframe(
         self,
-        t_s: float,
-        T_world_body: np.ndarray,
         P_loc: np.ndarray,
         observations: tuple[np.ndarray, np.ndarray, np.ndarray],
         new: list[NewPoint],
         point_steps: np.ndarray | None = None,
         imu: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """The keyframe's message to the graph: its pose, the motion since the last one, its
+        """The open keyframe's message to the graph: its pose, the motion since the last one, its
         observations, the new points with their seeds and the refreshed patches' links. Returns the
         new points' landmarks, world positions and covariances (None without new points).
         ``point_steps`` (m,3): how far each observation moved its live point (see :meth:`apply`);
         ``imu``: the IMU samples since the last keyframe (:meth:`~dem_graph.estimators.imu_preintegration.ImuBuffer.span`)."""
-        T = T_world_body
-        k = len(self.keyframe_t_s) - 1
-        if t_s > self.keyframe_t_s[-1]:  # else: the first frame, at the start pose's time
-            k += 1
-            self.keyframe_t_s.append(t_s)
+        if self._opened is None:
+            raise DemGraphError("no keyframe is open: open_keyframe first")
+        k, t_s, T, U_kf, Q_kf, _ = self._opened
+        self._opened = None
         new_landmarks = []
         started = None
         if new:
@@ -286,14 +305,11 @@ class GraphClient:
         # keyframe k - 1 as this frame's pose was measured from: in flight as corrected since, else the graph's
         T_prev = self._sent_T.get(k - 1, self.poses.get(k - 1))
         T_prev = None if T_prev is None else T_prev.copy()
-        self._graph.send(KeyframeMessage(k, t_s, T.copy(), self.U_kf, self.Q_kf, *observations, links, new_landmarks, want_marginal, imu, T_prev))
+        self._graph.send(KeyframeMessage(k, t_s, T.copy(), U_kf, Q_kf, *observations, links, new_landmarks, want_marginal, imu, T_prev))
         self._sent_T[k] = T.copy()
         self._Q_since[k] = np.zeros((6, 6))
         if point_steps is not None:
             self._steps_in_flight[k] = dict(zip(observations[0].tolist(), point_steps))
-        self.poses.setdefault(k, T.copy())  # until the graph's estimate is back
-        self.T_kf = T.copy()
-        self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))
         if every <= 0:
             self.anchor.T, self.anchor.P, self.anchor.Q = T.copy(), P_loc.copy(), np.zeros((6, 6))
         return started

@@ -88,6 +88,10 @@ class Isam2Slam(FrameDrivenEstimator):
         self._frames: list[FrameRecord] = []
         self._frames_since_keyframe = 0
         self._idle_worker_s = 0.0  # the graph's time on the results taken between frames (idle), until the next frame's record
+        # defer_keyframe_work (a live pipeline at the camera's rate), with the graph in a second process:
+        # a frame's keyframe work (drops, seeds, the graph's message) waits for idle time
+        self._after_frame: tuple | None = None  # that work, for the last frame: (its event, its keyframe observations or None, its timing)
+        self._t_prev_keyframe = t_start_s  # the keyframe before the open one's time
         # the IMU's samples until the graph has them (motion.use_imu and a rig with an imu section)
         self._imu = ImuBuffer(rig.imu) if c.motion.use_imu and rig.imu is not None else None
         self.keyframe_hooks: list = []  # called as hook(self) after each keyframe's result is taken, in-process graph only (studies)
@@ -130,14 +134,15 @@ class Isam2Slam(FrameDrivenEstimator):
         now rather than at the start of the next frame: the same results in the same order (no frame
         runs between), off the frame's path. Nothing here in a run whose results come at fixed points
         (in this process, or a fixed delay: each frame takes them all)."""
+        did = self._finish_frame()
         results = self._client.results()
-        if not results:
-            return False
-        self._idle_worker_s += self._take_results(results)
-        return True
+        if results:
+            self._idle_worker_s += self._take_results(results)
+        return did or bool(results)
 
     def finish(self) -> None:
         super().finish()
+        self._finish_frame()
         pending, final = self._client.finish()
         self._take_results(pending, restart=False)
         self._client.close(final)
@@ -150,6 +155,7 @@ class Isam2Slam(FrameDrivenEstimator):
         filt, client, c = self._filter, self._client, self.config
         timing = {}
         t0 = time.perf_counter()
+        self._finish_frame()  # the last frame's keyframe work, when no idle time came for it
         # results that came back since the last frame (a second process's): taken before this frame's search
         timing["graph_worker"] = self._take_results(client.results()) + self._idle_worker_s  # (and those taken between frames)
         self._idle_worker_s = 0.0
@@ -202,28 +208,61 @@ class Isam2Slam(FrameDrivenEstimator):
         tm = time.perf_counter()
         filt.end_frame(event.t_s)
         self.frontend.end_frame(event.t_s, event.image, event.textureless)
-        live_uv = None if event.textureless else self._drop_points()  # nothing is lost in a frame that could not show it
         map_s = time.perf_counter() - tm
-        if is_keyframe:
-            tg = time.perf_counter()
-            # no point starts in a frame without texture; its scans wait for the next frame
-            new = [] if event.textureless else filt.new_points(event.image, event.t_s, self._scans.take_until(event.t_s), live_uv)
-            tn = time.perf_counter()
-            self._send_keyframe(event.t_s, (landmarks, uv, sigma_px), new, point_steps)
-            graph_s += time.perf_counter() - tn
-            map_s += tn - tg
-        tg = time.perf_counter()
-        timing["graph_worker"] += self._take_results(client.results())
-        graph_s += time.perf_counter() - tg
-        if is_keyframe and client.in_process:
-            for hook in self.keyframe_hooks:
-                hook(self)
+        observations = (landmarks, uv, sigma_px, point_steps) if is_keyframe else None
+        if self.defer_keyframe_work and not client.in_process:
+            # the vehicle: the frame ends here, its keyframe numbered so that it rides on it; the
+            # points' drops and seeds, and the keyframe's message, wait for idle time (or the next frame)
+            if is_keyframe:
+                self._open_keyframe(event.t_s)
+            self._after_frame = (event, observations, timing)
+        else:
+            map_s_after, graph_s_after = self._keyframe_work(event, observations, timing)
+            map_s, graph_s = map_s + map_s_after, graph_s + graph_s_after
         timing["map"], timing["graph"] = map_s, graph_s
         timing["total"] = time.perf_counter() - t0
         client.anchor_frame(filt.T)
         record = FrameRecord(event.t_s, filt.T.copy(), client.anchor.pose_covariance(filt.T), len(self.live), int(len(idx)), timing)
         self._frames.append(record)
         return record
+
+    def _keyframe_work(self, event: CameraFrame, observations: tuple | None, timing: dict) -> tuple[float, float]:
+        """A frame's work on the points and the graph once its pose is known: the points it lost
+        dropped; at a keyframe (``observations``: its landmarks, pixels, sigmas and steps), new points
+        seeded and the keyframe's message sent; the results that came back taken. Returns the time
+        on the points and on the graph, seconds."""
+        client, filt = self._client, self._filter
+        tm = time.perf_counter()
+        live_uv = None if event.textureless else self._drop_points()  # nothing is lost in a frame that could not show it
+        map_s, graph_s = time.perf_counter() - tm, 0.0
+        if observations is not None:
+            tg = time.perf_counter()
+            # no point starts in a frame without texture; its scans wait for the next frame
+            new = [] if event.textureless else filt.new_points(event.image, event.t_s, self._scans.take_until(event.t_s), live_uv)
+            tn = time.perf_counter()
+            landmarks, uv, sigma_px, point_steps = observations
+            self._send_keyframe(event.t_s, (landmarks, uv, sigma_px), new, point_steps)
+            graph_s += time.perf_counter() - tn
+            map_s += tn - tg
+        tg = time.perf_counter()
+        timing["graph_worker"] += self._take_results(client.results())
+        graph_s += time.perf_counter() - tg
+        if observations is not None and client.in_process:
+            for hook in self.keyframe_hooks:
+                hook(self)
+        return map_s, graph_s
+
+    def _finish_frame(self) -> bool:
+        """The last frame's keyframe work, if it waited (``defer_keyframe_work``): done now, its time
+        kept in that frame's record (``after_frame``, seconds). True if there was any."""
+        if self._after_frame is None:
+            return False
+        event, observations, timing = self._after_frame
+        self._after_frame = None
+        t0 = time.perf_counter()
+        self._keyframe_work(event, observations, timing)
+        timing["after_frame"] = time.perf_counter() - t0
+        return True
 
     def _take_results_before_update(self, m: FrameMatches, T_pred: np.ndarray, U: np.ndarray, timing: dict) -> tuple[FrameMatches, np.ndarray]:
         """The graph's results that came back while this frame was searched (a second process's), taken
@@ -282,11 +321,18 @@ class Isam2Slam(FrameDrivenEstimator):
             live.follow(i, landmark, segment, np.linalg.inv(Sigma_old + sigma2 * np.eye(3)))
         return old
 
+    def _open_keyframe(self, t_s: float) -> None:
+        """This frame is the next keyframe (:meth:`GraphClient.open_keyframe`), at the filter's pose."""
+        self._t_prev_keyframe = self._client.open_keyframe(t_s, self._filter.T)
+
     def _send_keyframe(self, t_s: float, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint], point_steps: np.ndarray) -> None:
-        """The keyframe to the graph; its new points join the live ones (and the batch's log)."""
+        """The keyframe (opened here unless it was in its frame) to the graph; its new points join
+        the live ones (and the batch's log)."""
+        if not self._client.keyframe_open:
+            self._open_keyframe(t_s)
         imu = None
         if self._imu is not None:
-            t_prev = self._client.keyframe_t_s[-1]
+            t_prev = self._t_prev_keyframe
             if t_s > t_prev:
                 imu = self._imu.span(t_prev, t_s)
                 if imu is None:
@@ -297,7 +343,7 @@ class Isam2Slam(FrameDrivenEstimator):
         if budget is not None and new:
             room = max(0, budget - int(np.count_nonzero(self.live.landmark >= 0)))
             new, own = new[:room], new[room:]
-        started = self._client.send_keyframe(t_s, self._filter.T, self._filter.P_loc, observations, new, point_steps, imu)
+        started = self._client.send_keyframe(self._filter.P_loc, observations, new, point_steps, imu)
         if started is not None:
             landmarks, X_world, Sigma_world = started
             self.live.add(np.array([p.point_id for p in new]), landmarks, X_world, Sigma_world)

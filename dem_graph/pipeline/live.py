@@ -136,6 +136,7 @@ class LivePipeline:
         self.rig = rig
         self.estimator = estimator or make_estimator(rig, T_world_body_initial, t_start_s, has_odometry, self.config)
         self.name = self.estimator.name
+        self.estimator.defer_keyframe_work = self.config.realtime  # (the frame's keyframe work done between frames, see idle)
         self.map = LiveMap(rig, self.config.dem.fusion, c.revision_window_s, c.tolerance_m, c.tolerance_rad, c.tile_cells, c.gate_min_count)
         self.strict_order = strict_order
         self.listeners: list[Callable[[LiveUpdate], None]] = []
