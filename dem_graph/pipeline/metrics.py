@@ -217,6 +217,9 @@ def summary_lines(m: RunMetrics) -> list[str]:
     lm = m.live_map
     if lm is not None:
         line = f"live map: {lm.covered_cells} cells, update median {lm.update_median_ms:.2f} ms, p95 {lm.update_p95_ms:.2f} ms; {lm.returns} returns, re-placed {lm.returns_moved} times by revisions"
+        line += f"; whole frame median {lm.whole_frame_median_ms:.1f} ms, p95 {lm.whole_frame_p95_ms:.1f} ms"
+        if lm.idle_updates:
+            line += f", and between frames {lm.idle_median_ms:.1f} ms median, {lm.idle_p95_ms:.1f} ms p95 ({lm.idle_updates} times)"
         lw = lm.local_window
         if lw is not None and lw.frames_with_data:
             line += f"; Fig. 8 as the guidance had it: mean error {100 * lw.mean_of_mean_m:.1f} cm, std {100 * lw.mean_of_std_m:.1f} cm"
