@@ -110,10 +110,10 @@ def test_a_run_replayed_as_fast_as_possible_does_no_idle_work(clock):
     assert est.idle_at == []
 
 
-def _run(log, realtime: bool, idle_after_frames: bool, n_frames: int, graph=None):
+def _run(log, realtime: bool, idle_after_frames: bool, n_frames: int, graph=None, estimator: str = "isam2", **isam2):
     """The pipeline over the log's first ``n_frames`` frames, ``idle()`` called after each frame's update
-    (``idle_after_frames``); ``graph(client)`` may wrap the estimator's graph first."""
-    pipeline = LivePipeline.for_sequence(log, RunConfig(estimator="isam2", realtime=realtime))
+    (``idle_after_frames``); ``graph(client)`` may wrap the estimator's graph first; ``isam2``: its settings."""
+    pipeline = LivePipeline.for_sequence(log, RunConfig(estimator=estimator, realtime=realtime, isam2=isam2))
     held = graph(pipeline.estimator._client) if graph is not None else None
     est, pipeline.took = pipeline.estimator, []
     est_idle = est.idle
@@ -157,6 +157,7 @@ class _HeldGraph:
     def __init__(self, client):
         self.inner, self.released = client._graph, []
         client._graph = self
+        client.results_when_ready = True  # (as a second process's without a fixed delay)
 
     def release(self) -> None:
         self.released += self.inner.results()
@@ -189,3 +190,27 @@ def test_keyframe_work_and_results_done_between_frames_give_the_trajectory_of_th
     # which the next frame did first where no idle time came: its time stays in the frame it belongs to
     frames = a.frames[1:-1]
     assert all(f.timing_s.get("after_frame", 0.0) > 0.0 for f in frames)
+
+
+def test_the_batch_files_each_seed_under_the_frame_that_made_it_when_its_work_waited(smoke_log):
+    """isam2-batch's log keeps the frame each new point was seeded in: with the keyframe work between
+    frames (after the frame's record), still that frame, whose time is the point's creation time."""
+    pipeline = _run(smoke_log, realtime=True, idle_after_frames=True, n_frames=20, graph=_HeldGraph, estimator="isam2-batch")
+    est = pipeline.estimator
+    created = dict(zip(*(lambda a: (a["point_id"].tolist(), a["created_t_s"].tolist()))(est.result().points.arrays())))
+    frames_t = [f.t_s for f in est.result().frames]
+    seeds = est.log.seeds
+    assert len(seeds) > 50 and all(pipeline.took)
+    for frame, seed in zip(est.log.seed_frame, seeds, strict=True):
+        assert frames_t[frame] == created[seed.point_id]
+
+
+def test_at_a_fixed_delay_a_run_at_the_camera_rate_is_still_the_in_process_run_with_that_delay(smoke_log):
+    """With results handed back exactly one keyframe late nothing waits for idle time: the second
+    process's run, idle calls and all, is number for number the in-process run with that delay."""
+    in_process = _run(smoke_log, realtime=False, idle_after_frames=False, n_frames=25, graph_delay_keyframes=1)
+    second = _run(smoke_log, realtime=True, idle_after_frames=True, n_frames=25, graph_process=True, graph_delay_keyframes=1)
+    a, b = in_process.result(), second.result()
+    np.testing.assert_array_equal(a.trajectory().positions_xyz, b.trajectory().positions_xyz)
+    np.testing.assert_array_equal(a.trajectory().orientations_quat_xyzw, b.trajectory().orientations_quat_xyzw)
+    assert not any(second.took)  # (the estimator had no idle work: every result was taken in its frame)

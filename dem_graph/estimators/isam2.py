@@ -88,9 +88,10 @@ class Isam2Slam(FrameDrivenEstimator):
         self._frames: list[FrameRecord] = []
         self._frames_since_keyframe = 0
         self._idle_worker_s = 0.0  # the graph's time on the results taken between frames (idle), until the next frame's record
-        # defer_keyframe_work (a live pipeline at the camera's rate), with the graph in a second process:
-        # a frame's keyframe work (drops, seeds, the graph's message) waits for idle time
-        self._after_frame: tuple | None = None  # that work, for the last frame: (its event, its keyframe observations or None, its timing)
+        # defer_keyframe_work (a live pipeline at the camera's rate), with the graph in a second process
+        # whose results come when ready: a frame's keyframe work (drops, seeds, the graph's message)
+        # waits for idle time (at a fixed delay the run stays the in-process run with that delay)
+        self._after_frame: tuple | None = None  # that work, for the last frame: (its event, its keyframe observations or None, its timing, its number)
         self._t_prev_keyframe = t_start_s  # the keyframe before the open one's time
         # the IMU's samples until the graph has them (motion.use_imu and a rig with an imu section)
         self._imu = ImuBuffer(rig.imu) if c.motion.use_imu and rig.imu is not None else None
@@ -210,14 +211,14 @@ class Isam2Slam(FrameDrivenEstimator):
         self.frontend.end_frame(event.t_s, event.image, event.textureless)
         map_s = time.perf_counter() - tm
         observations = (landmarks, uv, sigma_px, point_steps) if is_keyframe else None
-        if self.defer_keyframe_work and not client.in_process:
+        if self.defer_keyframe_work and client.results_when_ready:
             # the vehicle: the frame ends here, its keyframe numbered so that it rides on it; the
             # points' drops and seeds, and the keyframe's message, wait for idle time (or the next frame)
             if is_keyframe:
                 self._open_keyframe(event.t_s)
-            self._after_frame = (event, observations, timing)
+            self._after_frame = (event, observations, timing, len(self._frames))
         else:
-            map_s_after, graph_s_after = self._keyframe_work(event, observations, timing)
+            map_s_after, graph_s_after = self._keyframe_work(event, observations, timing, len(self._frames))
             map_s, graph_s = map_s + map_s_after, graph_s + graph_s_after
         timing["map"], timing["graph"] = map_s, graph_s
         timing["total"] = time.perf_counter() - t0
@@ -226,11 +227,11 @@ class Isam2Slam(FrameDrivenEstimator):
         self._frames.append(record)
         return record
 
-    def _keyframe_work(self, event: CameraFrame, observations: tuple | None, timing: dict) -> tuple[float, float]:
-        """A frame's work on the points and the graph once its pose is known: the points it lost
-        dropped; at a keyframe (``observations``: its landmarks, pixels, sigmas and steps), new points
-        seeded and the keyframe's message sent; the results that came back taken. Returns the time
-        on the points and on the graph, seconds."""
+    def _keyframe_work(self, event: CameraFrame, observations: tuple | None, timing: dict, frame: int) -> tuple[float, float]:
+        """Frame number ``frame``'s work on the points and the graph once its pose is known: the
+        points it lost dropped; at a keyframe (``observations``: its landmarks, pixels, sigmas and
+        steps), new points seeded and the keyframe's message sent; the results that came back taken.
+        Returns the time on the points and on the graph, seconds."""
         client, filt = self._client, self._filter
         tm = time.perf_counter()
         live_uv = None if event.textureless else self._drop_points()  # nothing is lost in a frame that could not show it
@@ -241,7 +242,7 @@ class Isam2Slam(FrameDrivenEstimator):
             new = [] if event.textureless else filt.new_points(event.image, event.t_s, self._scans.take_until(event.t_s), live_uv)
             tn = time.perf_counter()
             landmarks, uv, sigma_px, point_steps = observations
-            self._send_keyframe(event.t_s, (landmarks, uv, sigma_px), new, point_steps)
+            self._send_keyframe(event.t_s, (landmarks, uv, sigma_px), new, point_steps, frame)
             graph_s += time.perf_counter() - tn
             map_s += tn - tg
         tg = time.perf_counter()
@@ -257,10 +258,10 @@ class Isam2Slam(FrameDrivenEstimator):
         kept in that frame's record (``after_frame``, seconds). True if there was any."""
         if self._after_frame is None:
             return False
-        event, observations, timing = self._after_frame
+        event, observations, timing, frame = self._after_frame
         self._after_frame = None
         t0 = time.perf_counter()
-        self._keyframe_work(event, observations, timing)
+        self._keyframe_work(event, observations, timing, frame)
         timing["after_frame"] = time.perf_counter() - t0
         return True
 
@@ -325,9 +326,9 @@ class Isam2Slam(FrameDrivenEstimator):
         """This frame is the next keyframe (:meth:`GraphClient.open_keyframe`), at the filter's pose."""
         self._t_prev_keyframe = self._client.open_keyframe(t_s, self._filter.T)
 
-    def _send_keyframe(self, t_s: float, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint], point_steps: np.ndarray) -> None:
-        """The keyframe (opened here unless it was in its frame) to the graph; its new points join
-        the live ones (and the batch's log)."""
+    def _send_keyframe(self, t_s: float, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint], point_steps: np.ndarray, frame: int) -> None:
+        """The keyframe (opened here unless it was in its frame, number ``frame``) to the graph; its
+        new points join the live ones (and the batch's log)."""
         if not self._client.keyframe_open:
             self._open_keyframe(t_s)
         imu = None
@@ -348,7 +349,7 @@ class Isam2Slam(FrameDrivenEstimator):
             landmarks, X_world, Sigma_world = started
             self.live.add(np.array([p.point_id for p in new]), landmarks, X_world, Sigma_world)
             if self._batch is not None:
-                self._batch.add_seeds(len(self._frames), new, landmarks)
+                self._batch.add_seeds(frame, new, landmarks)
         if own:
             self._keep_in_front_end(own)
         self._frames_since_keyframe = 0
