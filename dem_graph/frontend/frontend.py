@@ -336,17 +336,19 @@ class FrontEnd:
         """Yield ``(candidate index, new point id)`` for candidates in order, at most ``budget``, each
         at least ``min_separation_px`` from live and newly seeded points and with a trackable patch."""
         T_world_cam = T_world_body @ self.T_body_cam
-        occupied = list(occupied_uv)
+        live = np.asarray(occupied_uv, dtype=float).reshape(-1, 2)
+        occupied = np.empty((len(live) + max(budget, 0), 2))  # the live points' pixels, then the seeded ones'
+        occupied[: len(live)] = live
         n = 0
         for k in candidates:
             if n >= budget:
                 return
-            if not self._far_from(uv[k], np.asarray(occupied).reshape(-1, 2)):
+            if not self._far_from(uv[k], occupied[: len(live) + n]):
                 continue
             point_id = self._register(kind, image, uv[k], t_s, T_world_cam)
             if point_id is None:
                 continue
-            occupied.append(uv[k])
+            occupied[len(live) + n] = uv[k]
             n += 1
             yield k, point_id
 
