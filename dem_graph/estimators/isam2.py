@@ -131,10 +131,11 @@ class Isam2Slam(FrameDrivenEstimator):
             self._imu.take(event)
 
     def idle(self) -> bool:
-        """The graph's results that came back from the second process since the last frame, applied
-        now rather than at the start of the next frame: the same results in the same order (no frame
-        runs between), off the frame's path. Nothing here in a run whose results come at fixed points
-        (in this process, or a fixed delay: each frame takes them all)."""
+        """The last frame's keyframe work if it waited (``defer_keyframe_work``), then the graph's
+        results that came back from the second process since: done now rather than first in the next
+        frame, in the same order (no frame runs between), off the frame's path. Nothing here in a run
+        whose results come at fixed points (in this process, or a fixed delay: each frame does its
+        own keyframe work and takes them all)."""
         did = self._finish_frame()
         results = self._client.results()
         if results:

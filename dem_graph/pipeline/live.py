@@ -305,9 +305,9 @@ class LivePipeline:
 
     def idle(self) -> bool:
         """Work done while the sensors are quiet (a run at the camera's rate calls it between events
-        when there is time): the estimator's own (:meth:`Estimator.idle`: the graph's results that came
-        back), then the map brought up to the estimator's poses (see :meth:`_update_map`). True if
-        anything was done (its time in :attr:`idle_timing_s`)."""
+        when there is time): the estimator's own (:meth:`Estimator.idle`: the last frame's keyframe
+        work, the graph's results that came back), then the map brought up to the estimator's poses
+        (see :meth:`_update_map`). True if anything was done (its time in :attr:`idle_timing_s`)."""
         t0 = time.perf_counter()
         took = self.estimator.idle()
         if not (took or self._map_due) or not self._frame_t:
