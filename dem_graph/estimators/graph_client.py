@@ -252,10 +252,10 @@ class GraphClient:
         self._frame_anchor.append((k, invert(self.T_kf) @ T_world_body))
 
     # --- keyframes ---------------------------------------------------------------------------
-    def open_keyframe(self, t_s: float, T_world_body: np.ndarray) -> float:
+    def open_keyframe(self, t_s: float, T_world_body: np.ndarray) -> None:
         """A keyframe at ``t_s`` with the pose ``T_world_body``: numbered, and the frames from this one
         on ride on it (:meth:`anchor_frame`); its message follows with :meth:`send_keyframe`, before
-        any result is taken. Returns the time of the keyframe before it."""
+        any result is taken."""
         T = T_world_body
         t_prev = self.keyframe_t_s[-1]
         k = len(self.keyframe_t_s) - 1
@@ -266,12 +266,18 @@ class GraphClient:
         self.poses.setdefault(k, T.copy())  # until the graph's estimate is back
         self.T_kf = T.copy()
         self.U_kf, self.Q_kf = np.eye(4), np.zeros((6, 6))
-        return t_prev
 
     @property
     def keyframe_open(self) -> bool:
         """A keyframe is open (:meth:`open_keyframe`) and its message not sent yet."""
         return self._opened is not None
+
+    @property
+    def keyframe_before_open_t_s(self) -> float:
+        """The time of the keyframe before the open one (the open one's own for the first frame)."""
+        if self._opened is None:
+            raise DemGraphError("no keyframe is open: open_keyframe first")
+        return self._opened[5]
 
     def send_keyframe(
         self,

@@ -87,12 +87,10 @@ class Isam2Slam(FrameDrivenEstimator):
         self._archived = PointArchive(self.frontend)  # the graph's latest estimate of each landmark is asked for in result()
         self._frames: list[FrameRecord] = []
         self._frames_since_keyframe = 0
-        self._idle_worker_s = 0.0  # the graph's time on the results taken between frames (idle), until the next frame's record
         # defer_keyframe_work (a live pipeline at the camera's rate), with the graph in a second process
         # whose results come when ready: a frame's keyframe work (drops, seeds, the graph's message)
         # waits for idle time (at a fixed delay the run stays the in-process run with that delay)
         self._after_frame: tuple | None = None  # that work, for the last frame: (its event, its keyframe observations or None, its timing, its number)
-        self._t_prev_keyframe = t_start_s  # the keyframe before the open one's time
         # the IMU's samples until the graph has them (motion.use_imu and a rig with an imu section)
         self._imu = ImuBuffer(rig.imu) if c.motion.use_imu and rig.imu is not None else None
         self.keyframe_hooks: list = []  # called as hook(self) after each keyframe's result is taken, in-process graph only (studies)
@@ -138,8 +136,8 @@ class Isam2Slam(FrameDrivenEstimator):
         own keyframe work and takes them all)."""
         did = self._finish_frame()
         results = self._client.results()
-        if results:
-            self._idle_worker_s += self._take_results(results)
+        if results:  # (their graph time kept with the last frame's, as that frame's own results')
+            self._frames[-1].timing_s["graph_worker"] += self._take_results(results)
         return did or bool(results)
 
     def finish(self) -> None:
@@ -159,8 +157,7 @@ class Isam2Slam(FrameDrivenEstimator):
         t0 = time.perf_counter()
         self._finish_frame()  # the last frame's keyframe work, when no idle time came for it
         # results that came back since the last frame (a second process's): taken before this frame's search
-        timing["graph_worker"] = self._take_results(client.results()) + self._idle_worker_s  # (and those taken between frames)
-        self._idle_worker_s = 0.0
+        timing["graph_worker"] = self._take_results(client.results())
         tp = time.perf_counter()
         graph_s = tp - t0
         if self.frontend.begin_frame(event.t_s, event.textureless):
@@ -216,7 +213,7 @@ class Isam2Slam(FrameDrivenEstimator):
             # the vehicle: the frame ends here, its keyframe numbered so that it rides on it; the
             # points' drops and seeds, and the keyframe's message, wait for idle time (or the next frame)
             if is_keyframe:
-                self._open_keyframe(event.t_s)
+                client.open_keyframe(event.t_s, filt.T)
             self._after_frame = (event, observations, timing, len(self._frames))
         else:
             map_s_after, graph_s_after = self._keyframe_work(event, observations, timing, len(self._frames))
@@ -323,18 +320,14 @@ class Isam2Slam(FrameDrivenEstimator):
             live.follow(i, landmark, segment, np.linalg.inv(Sigma_old + sigma2 * np.eye(3)))
         return old
 
-    def _open_keyframe(self, t_s: float) -> None:
-        """This frame is the next keyframe (:meth:`GraphClient.open_keyframe`), at the filter's pose."""
-        self._t_prev_keyframe = self._client.open_keyframe(t_s, self._filter.T)
-
     def _send_keyframe(self, t_s: float, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint], point_steps: np.ndarray, frame: int) -> None:
         """The keyframe (opened here unless it was in its frame, number ``frame``) to the graph; its
         new points join the live ones (and the batch's log)."""
         if not self._client.keyframe_open:
-            self._open_keyframe(t_s)
+            self._client.open_keyframe(t_s, self._filter.T)
         imu = None
         if self._imu is not None:
-            t_prev = self._t_prev_keyframe
+            t_prev = self._client.keyframe_before_open_t_s
             if t_s > t_prev:
                 imu = self._imu.span(t_prev, t_s)
                 if imu is None:

@@ -337,7 +337,7 @@ class FrontEnd:
         at least ``min_separation_px`` from live and newly seeded points and with a trackable patch."""
         T_world_cam = T_world_body @ self.T_body_cam
         live = np.asarray(occupied_uv, dtype=float).reshape(-1, 2)
-        occupied = np.empty((len(live) + max(budget, 0), 2))  # the live points' pixels, then the seeded ones'
+        occupied = np.empty((len(live) + budget, 2))  # the live points' pixels, then the seeded ones'
         occupied[: len(live)] = live
         n = 0
         for k in candidates:

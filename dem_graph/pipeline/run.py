@@ -44,9 +44,10 @@ def make_estimator(sequence: Sequence, config: RunConfig) -> Estimator:
     return make_estimator_for(sequence.rig, sequence.T_world_body_initial, sequence.t_start_s, sequence.has_odometry, config)
 
 
-# A run at the camera's rate does the estimator's idle work (the graph's results, and the live map's
-# scans moved with them: 2-4 ms) while it waits for an event, when the next camera frame is due at least
-# this long after now, so that the work does not make the frame late.
+# A run at the camera's rate does the pipeline's idle work (the last frame's keyframe work, the graph's
+# results, the live map moved with them: 5-6 ms median on a `paper` run, docs/isam2_design.md) while it
+# waits for an event, when the next camera frame is due at least this long after now, so that the work
+# does not make the frame late.
 IDLE_MIN_WAIT_S = 0.010
 
 
@@ -75,9 +76,10 @@ def feed(
         if realtime:
             if t0_s is None:
                 t0_s, wall0_s = event.t_s, time.perf_counter()
-            wait_s = (event.t_s - t0_s) - (time.perf_counter() - wall0_s)
-            if wait_s > 0 and next_frame_t_s - t0_s - (time.perf_counter() - wall0_s) >= IDLE_MIN_WAIT_S and estimator.idle():
-                wait_s = (event.t_s - t0_s) - (time.perf_counter() - wall0_s)
+            elapsed_s = time.perf_counter() - wall0_s
+            wait_s = event.t_s - t0_s - elapsed_s
+            if wait_s > 0 and next_frame_t_s - t0_s - elapsed_s >= IDLE_MIN_WAIT_S and estimator.idle():
+                wait_s = event.t_s - t0_s - (time.perf_counter() - wall0_s)
             if wait_s > 0:
                 time.sleep(wait_s)
         if isinstance(event, CameraFrame):
