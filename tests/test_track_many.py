@@ -331,3 +331,41 @@ def test_recorded_run_is_the_same_with_the_reference_tracker(smoke_log, smoke_ru
     assert len(T_new) == sum(isinstance(e, CameraFrame) for e in smoke_log.events())
     assert n_new == n_ref and counters_new == counters_ref
     np.testing.assert_array_equal(T_new, T_ref)
+
+
+def test_the_front_ends_batch_bookkeeping_is_the_point_by_point_one(smoke_log):
+    """``FrontEnd.track_many`` over five frames against ``FrontEnd.track`` one point at a time on a
+    twin front end (patches refreshed every 2nd match, a third of the points predicted where they
+    are lost or cannot be placed): the same counters (their order too), misses, matches counted,
+    patches and their sources, and the same patch store."""
+    from dem_graph.frontend.frontend import FrontEnd, FrontendConfig, PointKind
+
+    config = FrontendConfig(refresh_patch_every=2)
+    batch_fe, point_fe = FrontEnd(config, smoke_log.rig), FrontEnd(config, smoke_log.rig)
+    A = _texture(4)
+    rng = np.random.default_rng(4)
+    uv0 = rng.uniform(25, [WIDTH_PX - 25, HEIGHT_PX - 25], (30, 2))
+    for fe in (batch_fe, point_fe):
+        ids = np.array([fe._register(PointKind.CAMERA if k % 2 else PointKind.LASER, A, uv, 0.0, np.eye(4)) for k, uv in enumerate(uv0)])
+    shift = np.array([1.0, 2.0])
+    for frame in range(1, 6):
+        image = np.roll(A, (2 * frame, frame), axis=(0, 1))
+        pred = uv0 + frame * shift + 0.3
+        pred[::3] = np.where(frame % 2, [-50.0, 10.0], [60.0, 200.0])  # out of the image, or in the wrong place
+        T_world_cam = np.eye(4)
+        T_world_cam[0, 3] = 0.1 * frame
+        tpl = batch_fe.templates(ids, None)
+        np.testing.assert_array_equal(tpl, point_fe.templates(ids, None))
+        batch = batch_fe.track_many(image, ids, tpl, pred, half_size_px=4, t_s=0.04 * frame, T_world_cam=T_world_cam)
+        singles = [point_fe.track(image, int(p), tpl[k], pred[k], half_size_px=4, t_s=0.04 * frame, T_world_cam=T_world_cam) for k, p in enumerate(ids)]
+        assert [s.status for s in singles] == batch.statuses()
+        assert list(batch_fe.counters.items()) == list(point_fe.counters.items())
+    assert batch_fe.counters["patch_refreshed"] > 0 and batch_fe.counters["track_ok"] > 0 and batch_fe.counters["track_out_of_image"] > 0
+    for p in ids.tolist():
+        a, b = batch_fe.tracks[p], point_fe.tracks[p]
+        assert (a.misses, a.n_tracked, a.segment) == (b.misses, b.n_tracked, b.segment)
+        np.testing.assert_array_equal(a.patch.region, b.patch.region)
+        np.testing.assert_array_equal(a.T_world_cam_source, b.T_world_cam_source)
+    slots = batch_fe.patches.slots(ids)
+    np.testing.assert_array_equal(batch_fe.patches.regions[slots], np.stack([batch_fe.tracks[p].patch.region_f32 for p in ids.tolist()]))
+    np.testing.assert_array_equal(batch_fe.patches.T_world_cam_source[slots], np.stack([batch_fe.tracks[p].T_world_cam_source for p in ids.tolist()]))

@@ -26,6 +26,7 @@ from pydantic import Field
 from dem_graph.config_types import StrictModel
 from dem_graph.frontend.focus import FocusArea, FocusConfig
 from dem_graph.frontend.gap_bridge import GapBridge, GapBridgeConfig
+from dem_graph.frontend.patch_store import PatchStore
 from dem_graph.frontend.tracker import Patch, PatchTracker, TrackBatch, TrackerConfig, TrackResult, TrackStatus
 from dem_graph.frontend.warp_kernel import ground_homographies
 from dem_graph.geometry.rig import SensorRig
@@ -158,6 +159,7 @@ class FrontEnd:
     config: FrontendConfig
     rig: SensorRig
     tracker: PatchTracker = field(init=False)
+    patches: PatchStore = field(init=False, repr=False)  # the live points' patches in arrays, for the templates
     tracks: dict[int, PointTrack] = field(default_factory=dict)
     counters: Counter = field(default_factory=Counter)
     record_view: bool = False  # keep each frame's searches in last_view (a viewer asks for it)
@@ -167,6 +169,8 @@ class FrontEnd:
 
     def __post_init__(self):
         self.tracker = PatchTracker(self.config.tracker)
+        tc = self.config.tracker
+        self.patches = PatchStore(2 * (tc.patch_half_size_px + tc.warp_margin_px) + 1)
         self.camera = self.rig.camera_model
         self.T_body_cam = self.rig.T_body_cam
         self.T_cam_body = invert(self.T_body_cam)
@@ -204,13 +208,11 @@ class FrontEnd:
             return None
         if n == 0:
             return np.zeros((0, 3, 3))
-        tracks = [self.tracks[int(p)] for p in point_ids]
-        T_source = np.array([t.T_world_cam_source for t in tracks], dtype=float)
+        store = self.patches
+        slots = store.slots(point_ids)
         X = np.ascontiguousarray(X_world, dtype=float).reshape(n, 3)
-        H = ground_homographies(X, T_source, np.ascontiguousarray(T_world_cam, dtype=float), self.camera.intrinsics_array, float(half_m))
-        centers = np.array([t.patch.center_px for t in tracks])
-        radius = tracks[0].patch.region.shape[0] // 2
-        return self.tracker.template_warps(centers, radius, H)
+        H = ground_homographies(X, store.T_world_cam_source[slots], np.ascontiguousarray(T_world_cam, dtype=float), self.camera.intrinsics_array, float(half_m))
+        return self.tracker.template_warps(store.centers_px[slots], store.regions.shape[1] // 2, H)
 
     def templates(self, point_ids, warps: np.ndarray | None) -> np.ndarray:
         """(n,t,t) float32: each point's template, its patch warped by its matrix of
@@ -222,8 +224,8 @@ class FrontEnd:
         warped = np.zeros(len(ids), dtype=bool) if warps is None else np.isfinite(warps[:, 2, 2])
         for k in np.flatnonzero(~warped).tolist():
             out[k] = tracker.template(self.tracks[int(ids[k])].patch)
-        if warped.any():  # in one compiled pass
-            out[warped] = tracker.warp_templates([self.tracks[p].patch for p in ids[warped].tolist()], warps[warped])
+        if warped.any():  # in one compiled pass, reading the regions where they are kept
+            out[warped] = tracker.warp_regions(self.patches.regions, self.patches.slots(ids[warped]), warps[warped])
         return out
 
     def track(self, image, point_id: int, template: np.ndarray, uv_pred, S_px2=None, half_size_px=None, t_s: float = 0.0, T_world_cam=None) -> TrackResult:
@@ -244,11 +246,10 @@ class FrontEnd:
         :meth:`PatchTracker.track_many` gives it. Counters, misses and patch refreshes follow the
         points' order, as with one :meth:`track` call per point."""
         batch = self.tracker.track_many(image, templates, uv_pred, S_px2=S_px2, half_size_px=half_size_px)
-        ids = np.asarray(point_ids).tolist()
+        ids = np.asarray(point_ids, dtype=np.int64)
         if self.record_view:
-            self._view(t_s).add([self.tracks[p].kind for p in ids], uv_pred, batch.search_half_size_px, batch.uv_px)  # uv_px: NaN unless matched
-        for point_id, status, uv in zip(ids, batch.statuses(), batch.uv_px):
-            self._record(image, point_id, status, uv, t_s, T_world_cam)
+            self._view(t_s).add([self.tracks[p].kind for p in ids.tolist()], uv_pred, batch.search_half_size_px, batch.uv_px)  # uv_px: NaN unless matched
+        self._record_many(image, ids, batch, t_s, T_world_cam)
         return batch
 
     def _view(self, t_s: float) -> TrackedView:
@@ -268,12 +269,40 @@ class FrontEnd:
         track.n_tracked += 1
         every = self.config.refresh_patch_every
         if every and T_world_cam is not None and track.n_tracked % every == 0:
-            patch = self.tracker.make_patch(image, uv, t_s)
-            if patch is not None:
-                track.patch = patch
-                track.T_world_cam_source = np.array(T_world_cam)
-                track.segment += 1
-                self.counters["patch_refreshed"] += 1
+            self._refresh_patch(track, image, uv, t_s, T_world_cam)
+
+    def _record_many(self, image, point_ids: np.ndarray, batch: TrackBatch, t_s: float, T_world_cam) -> None:
+        """:meth:`_record` for every point of a batch, without a call per point: the same counters
+        (each status's count, first added in the order the points first have it), misses and refreshes."""
+        for status, count in batch.status_counts():
+            self.counters[_TRACK_COUNTER[status]] += count
+        tracks = self.tracks
+        ok = batch.ok
+        for point_id in point_ids[~ok].tolist():
+            tracks[point_id].misses += 1
+        every = self.config.refresh_patch_every
+        refresh = bool(every) and T_world_cam is not None
+        due = []
+        for k, point_id in enumerate(point_ids[ok].tolist()):
+            track = tracks[point_id]
+            track.misses = 0
+            track.n_tracked += 1
+            if refresh and track.n_tracked % every == 0:
+                due.append((k, track))
+        if due:
+            uv_ok = batch.uv_px[ok]
+            for k, track in due:
+                self._refresh_patch(track, image, uv_ok[k], t_s, T_world_cam)
+
+    def _refresh_patch(self, track: PointTrack, image, uv, t_s: float, T_world_cam) -> None:
+        """The track's patch re-cut at its match ``uv`` in this frame (when it can be)."""
+        patch = self.tracker.make_patch(image, uv, t_s)
+        if patch is not None:
+            track.patch = patch
+            track.T_world_cam_source = np.array(T_world_cam)
+            self.patches.put(track.point_id, patch, track.T_world_cam_source)
+            track.segment += 1
+            self.counters["patch_refreshed"] += 1
 
     # --- new points --------------------------------------------------------------------------
     def focus_area(self, speed_mps: float | None) -> FocusArea:
@@ -299,7 +328,8 @@ class FrontEnd:
             return None
         point_id = self._next_id
         self._next_id += 1
-        self.tracks[point_id] = PointTrack(point_id, kind, patch, np.array(T_world_cam), t_s)
+        self.tracks[point_id] = track = PointTrack(point_id, kind, patch, np.array(T_world_cam), t_s)
+        self.patches.put(point_id, patch, track.T_world_cam_source)
         self.counters["added_laser" if kind == PointKind.LASER else "added_camera"] += 1
         return point_id
 
@@ -452,4 +482,5 @@ class FrontEnd:
 
     def drop(self, point_id: int, reason: str) -> PointTrack:
         self.counters[f"dropped_{reason}"] += 1
+        self.patches.remove(point_id)
         return self.tracks.pop(point_id)

@@ -26,6 +26,8 @@ import math
 import numba
 import numpy as np
 
+from dem_graph.frontend.vector_kernel import BLOCK_LANES, BLOCK_ROWS, correlate_block
+
 OK, LOW_SCORE, AMBIGUOUS = 0, 1, 2
 # the best candidate is on the score grid's outer ring, which exists only where the image border cut it:
 # the scores beyond it are unknown, so it may be the slope of a peak outside the image
@@ -268,74 +270,84 @@ def plan_searches(uv_pred: np.ndarray, S: np.ndarray, half_size: int, templates:
 @numba.njit(cache=True, nogil=True)
 def ncc_grid(grey: np.ndarray, row0: int, col0: int, n_rows: int, n_cols: int, template: np.ndarray, out: np.ndarray) -> None:
     """The normalised cross-correlation (OpenCV's ``TM_CCOEFF_NORMED``) of ``template`` (t,t) at
-    every placement of its top-left corner at ``grey[row0 + i, col0 + j]``, ``i < n_rows``,
+    every placement of its top-left corner at ``grey[row0 + i, col0 + j]`` (a uint8 image), ``i < n_rows``,
     ``j < n_cols``, into ``out`` (n_rows * n_cols, row-major).
 
     The sums are taken in float64 from the grey levels: a score is within 3e-8 of the definition,
     where OpenCV's float32 correlation was up to 2.3e-4 off it (tests/test_track_many.py). Where OpenCV's rules decide a score without dividing, they are
     kept: a flat template scores 1 everywhere; where the window's spread times the template's is
     not above the numerator (a flat window, or rounding), the score is +-1 up to 1.125 times,
-    else 0."""
+    else 0.
+
+    The numerators are :func:`~dem_graph.frontend.vector_kernel.correlate_block`'s blocks of sums held
+    in vector registers (the grid padded to whole blocks; the padding's sums are not used). The
+    windows' sums of grey levels and of their squares are integers, summed exactly in int64."""
     t_rows, t_cols = template.shape
     n_px = t_rows * t_cols
     h, w = n_rows + t_rows - 1, n_cols + t_cols - 1
-    # the grid's rows computed 8 columns at a time (the columns past n_cols are discarded): each
-    # template pixel then adds to whole vectors of independent sums, which the compiler vectorises
-    cols_padded = (n_cols + 7) // 8 * 8
-    region = np.zeros((h, cols_padded + t_cols - 1))
+    cols_padded = (n_cols + BLOCK_LANES - 1) // BLOCK_LANES * BLOCK_LANES
+    rows_padded = (n_rows + BLOCK_ROWS - 1) // BLOCK_ROWS * BLOCK_ROWS
+    stride = cols_padded + t_cols - 1
+    region = np.zeros((rows_padded + t_rows - 1) * stride)
+    # each column's sums over the window's rows, slid down the grid one row at a time
+    col1 = np.zeros(w, dtype=np.int64)
+    col2 = np.zeros(w, dtype=np.int64)
     for r in range(h):
         for c in range(w):
-            region[r, c] = grey[row0 + r, col0 + c]
+            g = np.int64(grey[row0 + r, col0 + c])
+            region[r * stride + c] = g
+            if r < t_rows:
+                col1[c] += g
+                col2[c] += g * g
+    window1 = np.empty(n_rows * n_cols, dtype=np.int64)
+    window2 = np.empty(n_rows * n_cols, dtype=np.int64)
+    for i in range(n_rows):
+        if i > 0:
+            for c in range(w):
+                g_in = np.int64(grey[row0 + i + t_rows - 1, col0 + c])
+                g_out = np.int64(grey[row0 + i - 1, col0 + c])
+                col1[c] += g_in - g_out
+                col2[c] += g_in * g_in - g_out * g_out
+        sum1 = np.int64(0)
+        sum2 = np.int64(0)
+        for c in range(t_cols):
+            sum1 += col1[c]
+            sum2 += col2[c]
+        for j in range(n_cols):
+            if j > 0:
+                sum1 += col1[j + t_cols - 1] - col1[j - 1]
+                sum2 += col2[j + t_cols - 1] - col2[j - 1]
+            window1[i * n_cols + j] = sum1
+            window2[i * n_cols + j] = sum2
     t_mean = 0.0
     for a in range(t_rows):
         for b in range(t_cols):
             t_mean += np.float64(template[a, b])
     t_mean /= n_px
-    t_zero_mean = np.empty((t_rows, t_cols))
+    t_zero_mean = np.empty(t_rows * t_cols)
     t_norm2 = 0.0
     for a in range(t_rows):
         for b in range(t_cols):
             d = np.float64(template[a, b]) - t_mean
-            t_zero_mean[a, b] = d
+            t_zero_mean[a * t_cols + b] = d
             t_norm2 += d * d
     if t_norm2 < 2.220446049250313e-16:  # OpenCV: a flat template matches everywhere
         out[: n_rows * n_cols] = 1.0
         return
     t_norm = math.sqrt(t_norm2)
-    num = np.zeros((n_rows, cols_padded))
-    for a in range(t_rows):
-        for b in range(t_cols):
-            d = t_zero_mean[a, b]
-            for i in range(n_rows):
-                row = region[i + a, b : b + cols_padded]
-                num_i = num[i]
-                for j in range(cols_padded):
-                    num_i[j] += row[j] * d
-    # the windows' sums of grey levels and of their squares, by integral images
-    s1 = np.zeros((h + 1, w + 1))
-    s2 = np.zeros((h + 1, w + 1))
-    for r in range(h):
-        acc1 = 0.0
-        acc2 = 0.0
-        for c in range(w):
-            x = region[r, c]
-            acc1 += x
-            acc2 += x * x
-            s1[r + 1, c + 1] = s1[r, c + 1] + acc1
-            s2[r + 1, c + 1] = s2[r, c + 1] + acc2
+    num = np.empty(rows_padded * cols_padded)
+    for i in range(0, rows_padded, BLOCK_ROWS):
+        for j in range(0, cols_padded, BLOCK_LANES):
+            correlate_block(region, stride, t_zero_mean, t_rows, t_cols, i, j, num[i * cols_padded + j :], cols_padded)
     for i in range(n_rows):
         for j in range(n_cols):
-            w1 = s1[i + t_rows, j + t_cols] - s1[i, j + t_cols] - s1[i + t_rows, j] + s1[i, j]
-            w2 = s2[i + t_rows, j + t_cols] - s2[i, j + t_cols] - s2[i + t_rows, j] + s2[i, j]
+            w1 = np.float64(window1[i * n_cols + j])
+            w2 = np.float64(window2[i * n_cols + j])
             denom = math.sqrt(max(w2 - w1 * w1 / n_px, 0.0)) * t_norm
-            v = num[i, j]
-            if abs(v) < denom:
-                v = v / denom
-            elif abs(v) < denom * 1.125:
-                v = 1.0 if v > 0 else -1.0
-            else:
-                v = 0.0
-            out[i * n_cols + j] = v
+            v = num[i * cols_padded + j]
+            # (selects rather than branches, so that the loop compiles to vector code)
+            sign = 1.0 if v > 0 else -1.0
+            out[i * n_cols + j] = v / denom if abs(v) < denom else (sign if abs(v) < denom * 1.125 else 0.0)
 
 
 @numba.njit(cache=True, nogil=True)

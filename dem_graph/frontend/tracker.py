@@ -175,6 +175,11 @@ class TrackBatch:
     def statuses(self) -> list[TrackStatus]:
         return [_STATUS_OF_CODE[c] for c in self.status.tolist()]
 
+    def status_counts(self) -> list[tuple[TrackStatus, int]]:
+        """How many points have each status, the statuses in the order the points first have them."""
+        codes, first, counts = np.unique(self.status, return_index=True, return_counts=True)
+        return [(_STATUS_OF_CODE[int(codes[k])], int(counts[k])) for k in np.argsort(first, kind="stable").tolist()]
+
 
 
 def _grey_image(image: np.ndarray) -> np.ndarray:
@@ -310,7 +315,14 @@ class PatchTracker:
         if not patches:
             return np.zeros((0, side, side), dtype=np.float32)
         regions = np.stack([p.region_f32 for p in patches])
-        return sample_templates(regions, np.ascontiguousarray(M_region_from_template, dtype=float), side)
+        return self.warp_regions(regions, np.arange(len(patches)), M_region_from_template)
+
+    def warp_regions(self, regions: np.ndarray, slots: np.ndarray, M_region_from_template: np.ndarray) -> np.ndarray:
+        """(n,t,t) float32: :meth:`warp_templates` for the stored regions ``regions[slots]`` ((m,R,R)
+        float32; ``slots`` (n,)), read in place (a :class:`~dem_graph.frontend.patch_store.PatchStore`'s)."""
+        side = 2 * self.config.patch_half_size_px + 1
+        slots = np.ascontiguousarray(slots, dtype=np.int64)
+        return sample_templates(regions, slots, np.ascontiguousarray(M_region_from_template, dtype=float).reshape(len(slots), 3, 3), side)
 
     # ------------------------------------------------------------------ active search
 

@@ -159,17 +159,18 @@ def template_warps(centers_src_px: np.ndarray, region_radius_px: int, half: int,
 
 
 @numba.njit(cache=True, nogil=True)
-def sample_templates(regions: np.ndarray, M_region_from_template: np.ndarray, side: int) -> np.ndarray:
-    """(n, side, side) float32 templates: pixel (row a, column b) of template k is region k
-    ((n, R, R), float32) sampled bilinearly at ``M[k] @ (b, a, 1)`` (column, row; divided by its
-    third coordinate), the region's border repeated beyond it (infinitely far too); float64
-    arithmetic. A NaN position samples the region's first row or column."""
-    n, height, width = regions.shape
+def sample_templates(regions: np.ndarray, slots: np.ndarray, M_region_from_template: np.ndarray, side: int) -> np.ndarray:
+    """(n, side, side) float32 templates: pixel (row a, column b) of template k is region
+    ``slots[k]`` (of ``regions`` (m, R, R), float32) sampled bilinearly at ``M[k] @ (b, a, 1)``
+    (column, row; divided by its third coordinate), the region's border repeated beyond it
+    (infinitely far too); float64 arithmetic. A NaN position samples the region's first row or column."""
+    n = slots.shape[0]
+    height, width = regions.shape[1], regions.shape[2]
     out = np.empty((n, side, side), dtype=np.float32)
     x_max, y_max = width - 1.0, height - 1.0
     for k in range(n):
         M = M_region_from_template[k]
-        region = regions[k]
+        region = regions[slots[k]]
         template = out[k]
         for a in range(side):
             x_a = M[0, 1] * a + M[0, 2]
