@@ -119,6 +119,7 @@ class TrackedView:
         return {k: np.concatenate([p[i] for p in self.parts]) for i, k in enumerate(names)}
 
 
+_SEED_CHUNK = 64  # candidates whose distances to the live points are taken at once (a seed needs only the first few)
 GROUND_MIN_POINTS = 12  # live points a ground plane is fitted to, at least
 GROUND_MIN_EXTENT_M = 0.5  # their spread along and across the body, at least, metres
 
@@ -364,23 +365,32 @@ class FrontEnd:
 
     def _seed(self, kind: PointKind, candidates, uv: np.ndarray, budget: int, occupied_uv: np.ndarray, image, t_s: float, T_world_body: np.ndarray):
         """Yield ``(candidate index, new point id)`` for candidates in order, at most ``budget``, each
-        at least ``min_separation_px`` from live and newly seeded points and with a trackable patch."""
+        at least ``min_separation_px`` from live and newly seeded points and with a trackable patch.
+        The distances to the live points are taken for ``_SEED_CHUNK`` candidates at a time (the same
+        squared distances as one candidate at a time), to the seeded ones per candidate."""
         T_world_cam = T_world_body @ self.T_body_cam
         live = np.asarray(occupied_uv, dtype=float).reshape(-1, 2)
-        occupied = np.empty((len(live) + budget, 2))  # the live points' pixels, then the seeded ones'
-        occupied[: len(live)] = live
+        min_d2 = self.config.min_separation_px**2
+        seeded = np.empty((budget, 2))
         n = 0
-        for k in candidates:
-            if n >= budget:
-                return
-            if not self._far_from(uv[k], occupied[: len(live) + n]):
-                continue
-            point_id = self._register(kind, image, uv[k], t_s, T_world_cam)
-            if point_id is None:
-                continue
-            occupied[len(live) + n] = uv[k]
-            n += 1
-            yield k, point_id
+        candidates = np.asarray(list(candidates) if not isinstance(candidates, np.ndarray) else candidates, dtype=np.int64)
+        for start in range(0, len(candidates), _SEED_CHUNK):
+            chunk = candidates[start : start + _SEED_CHUNK]
+            if len(live):
+                far_from_live = (np.sum((live[None, :, :] - uv[chunk][:, None, :]) ** 2, axis=2).min(axis=1) >= min_d2).tolist()
+            else:
+                far_from_live = [True] * len(chunk)
+            for k, far in zip(chunk.tolist(), far_from_live):
+                if n >= budget:
+                    return
+                if not far or (n and not self._far_from(uv[k], seeded[:n])):
+                    continue
+                point_id = self._register(kind, image, uv[k], t_s, T_world_cam)
+                if point_id is None:
+                    continue
+                seeded[n] = uv[k]
+                n += 1
+                yield k, point_id
 
     def new_camera_points(self, image, t_s, T_world_body, focus: FocusArea, live_points_body: np.ndarray, occupied_uv: np.ndarray) -> list[NewPoint]:
         """Points at the empty focus cells, on the ground the live points around them make

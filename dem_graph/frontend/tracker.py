@@ -195,6 +195,17 @@ def _to_grey(window: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(window, cv2.COLOR_BGR2GRAY) if window.ndim == 3 else window
 
 
+def _spread_below(grey: np.ndarray, min_std: float) -> bool:
+    """Whether the grey levels' standard deviation (numpy's ``std``) is below ``min_std``. OpenCV's
+    ``meanStdDev`` (about 10 times faster on a 15x15 patch) decides, unless it is within rounding of
+    the minimum; then numpy's own value does, so that the answer is numpy's in every case."""
+    _, std = cv2.meanStdDev(grey)
+    fast = float(std[0, 0])
+    if abs(fast - min_std) > 1e-9 * max(1.0, min_std):
+        return fast < min_std
+    return float(grey.std()) < min_std
+
+
 def _point(uv_px, what: str) -> np.ndarray:
     uv = np.asarray(uv_px, dtype=float)
     if uv.shape != (2,):
@@ -237,7 +248,7 @@ class PatchTracker:
         side = 2 * radius + 1
         region = cv2.getRectSubPix(np.ascontiguousarray(window), (side, side), (u - u0, v - v0))
         central = region[cfg.warp_margin_px : cfg.warp_margin_px + 2 * half + 1, cfg.warp_margin_px : cfg.warp_margin_px + 2 * half + 1]
-        if float(central.std()) < cfg.min_patch_std_dn:
+        if _spread_below(central, cfg.min_patch_std_dn):
             return None
         return Patch(region=region, center_px=uv.copy(), t_s=float(t_s))
 

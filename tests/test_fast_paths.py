@@ -1,10 +1,12 @@
-"""The correlation's sums in explicit vectors, and the patches kept in arrays: the same numbers, to the bit.
+"""The frame's fast paths against the plain computations they replaced: the same numbers, to the bit.
 
 ``ncc_grid`` forms its numerators in blocks held in vector registers
 (:mod:`dem_graph.frontend.vector_kernel`) and its windows' sums in integers; the front end's
-templates read the regions a :class:`PatchStore` keeps. These tests hold both to references that
-form every number one operation at a time, in the order the plain loops did: the scores must be
-equal, not close, since the EKF baselines' tracks are asked to stay the same to the bit.
+templates read the regions a :class:`PatchStore` keeps; a patch's spread is OpenCV's unless within
+rounding of the minimum; new points' distances to the live ones are taken for many candidates at
+once. These tests hold each to a reference that computes every number the plain way, in the
+plain order: the results must be equal, not close, since the EKF baselines' tracks are asked to stay
+the same to the bit.
 """
 
 from __future__ import annotations
@@ -143,3 +145,50 @@ def test_the_patch_store_keeps_each_points_patch_in_its_slot():
     patches = [live[p][0] for p in ids.tolist()]
     M = tracker.template_warps(np.array([p.center_px for p in patches]), side // 2, np.tile(np.array([[1.02, 0.05, -1.0], [0.0, 0.97, 2.0], [1e-4, 0.0, 1.0]]), (len(ids), 1, 1)))
     np.testing.assert_array_equal(tracker.warp_regions(store.regions, slots, M), tracker.warp_templates(patches, M))
+
+
+def test_a_patchs_spread_is_decided_as_numpys_std_decides_it():
+    """Patches whose spread is far from the minimum, and ones built to sit on it within rounding
+    (two grey levels in proportions that put numpy's std at the minimum or a hair either side): the
+    decision is the one numpy's ``std`` gives, every time."""
+    from dem_graph.frontend.tracker import _spread_below
+
+    rng = np.random.default_rng(5)
+    cases = [rng.integers(0, 256, (15, 15)).astype(np.uint8) for _ in range(50)]
+    cases += [np.full((15, 15), 9, dtype=np.uint8)]
+    for n_high in range(1, 225):  # two levels 0 and g: std = g * sqrt(p (1 - p)), p = n_high / 225
+        for g in (6, 7, 8):
+            patch = np.zeros(225, dtype=np.uint8)
+            patch[:n_high] = g
+            cases.append(patch.reshape(15, 15))
+    for patch in cases:
+        std = float(patch.std())
+        for min_std in (std, np.nextafter(std, 0.0), np.nextafter(std, 9.0), 3.0, 0.0):
+            assert _spread_below(patch, min_std) == (std < min_std)
+
+
+def test_new_points_keep_their_distance_as_one_candidate_at_a_time(smoke_log):
+    """``FrontEnd._seed`` over 300 candidates (several chunks of distances), with 200 live points
+    and a budget that ends it part way: the candidates seeded, in order, are the ones a check of
+    one candidate at a time against the live and already seeded points picks."""
+    from dem_graph.frontend.frontend import FrontEnd, FrontendConfig, PointKind
+
+    from dem_graph.frontend.frontend import _SEED_CHUNK
+
+    fe = FrontEnd(FrontendConfig(min_separation_px=9.0), smoke_log.rig)
+    rng = np.random.default_rng(8)
+    image = rng.integers(0, 256, (240, 320)).astype(np.uint8)
+    live = rng.uniform(30, [290, 210], (200, 2))
+    uv = rng.uniform(30, [290, 210], (300, 2))
+    uv[::7] = live[: len(uv[::7])] + 0.5  # some candidates right on live points
+    for budget in (0, 5, 40, 300):
+        got = [k for k, _ in fe._seed(PointKind.CAMERA, range(len(uv)), uv, budget, live, image, 0.0, np.eye(4))]
+        expected, occupied = [], live.copy()
+        for k in range(len(uv)):
+            if len(expected) >= budget:
+                break
+            if np.min(np.sum((occupied - uv[k]) ** 2, axis=1)) >= 81.0:
+                expected.append(k)
+                occupied = np.vstack([occupied, uv[k]])
+        assert got == expected
+    assert max(got) >= _SEED_CHUNK  # the unbudgeted run seeded from past the first chunk of distances
