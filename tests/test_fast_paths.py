@@ -171,9 +171,7 @@ def test_new_points_keep_their_distance_as_one_candidate_at_a_time(smoke_log):
     """``FrontEnd._seed`` over 300 candidates (several chunks of distances), with 200 live points
     and a budget that ends it part way: the candidates seeded, in order, are the ones a check of
     one candidate at a time against the live and already seeded points picks."""
-    from dem_graph.frontend.frontend import FrontEnd, FrontendConfig, PointKind
-
-    from dem_graph.frontend.frontend import _SEED_CHUNK
+    from dem_graph.frontend.frontend import _SEED_CHUNK, FrontEnd, FrontendConfig, PointKind
 
     fe = FrontEnd(FrontendConfig(min_separation_px=9.0), smoke_log.rig)
     rng = np.random.default_rng(8)
