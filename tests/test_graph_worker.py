@@ -608,3 +608,22 @@ def test_the_graph_process_ends_with_a_killed_run(smoke_folder, tmp_path):
         _stop(run, graph_pid)
     stderr = (tmp_path / "stderr.txt").read_text()
     assert "Traceback" not in stderr, stderr
+
+
+def test_the_second_process_is_ready_when_made(recorded):
+    """``ProcessGraph`` returns once the process has imported and built its graph: a setup it cannot
+    build one from is refused there, with the process's reason, before any keyframe is sent; with a
+    good one nothing is left unread, and the first keyframes' results are the in-process ones."""
+    setup, messages, results = recorded
+    with pytest.raises(DemGraphError, match="the graph process could not start"):
+        ProcessGraph(dataclasses.replace(setup, P0=np.eye(3)))
+    graph = ProcessGraph(setup)
+    try:
+        assert not graph._conn.poll() and graph._process.poll() is None
+        graph.send(messages[0])
+        got = _wait(graph)
+        assert got[0].k == results[0].k
+        for k, T in results[0].poses.items():
+            np.testing.assert_array_equal(got[0].poses[k], T)
+    finally:
+        graph.close()

@@ -214,9 +214,9 @@ class GraphClient:
         """The graph can take the next keyframe: in this process it always can; in a second process
         it must be within ``graph_max_lag`` keyframes of it. Past that, with ``graph_when_behind:
         wait`` the frame waits for the graph; with ``merge`` (the default outside a run replayed as
-        fast as possible) it does not, and the answer is no. The graph's start (a second process
-        imports for a second or more) is always waited for. Results arriving meanwhile are kept for
-        :meth:`results`."""
+        fast as possible) it does not, and the answer is no. Until the graph has answered its first
+        keyframe it is always waited for (the process is ready before the estimator is made, so its
+        first answer takes one update). Results arriving meanwhile are kept for :meth:`results`."""
         k = self.next_keyframe
         if not self._graph.started or self._when_behind == "wait":
             return self._graph.wait_for(k, None)
