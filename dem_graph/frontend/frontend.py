@@ -373,7 +373,7 @@ class FrontEnd:
         min_d2 = self.config.min_separation_px**2
         seeded = np.empty((budget, 2))
         n = 0
-        candidates = np.asarray(list(candidates) if not isinstance(candidates, np.ndarray) else candidates, dtype=np.int64)
+        candidates = np.fromiter(candidates, dtype=np.int64)
         for start in range(0, len(candidates), _SEED_CHUNK):
             chunk = candidates[start : start + _SEED_CHUNK]
             if len(live):
