@@ -197,8 +197,10 @@ def test_the_batch_files_each_seed_under_the_frame_that_made_it_when_its_work_wa
     frames (after the frame's record), still that frame, whose time is the point's creation time."""
     pipeline = _run(smoke_log, realtime=True, idle_after_frames=True, n_frames=20, graph=_HeldGraph, estimator="isam2-batch")
     est = pipeline.estimator
-    created = dict(zip(*(lambda a: (a["point_id"].tolist(), a["created_t_s"].tolist()))(est.result().points.arrays())))
-    frames_t = [f.t_s for f in est.result().frames]
+    result = est.result()
+    points = result.points.arrays()
+    created = dict(zip(points["point_id"].tolist(), points["created_t_s"].tolist()))
+    frames_t = [f.t_s for f in result.frames]
     seeds = est.log.seeds
     assert len(seeds) > 50 and all(pipeline.took)
     for frame, seed in zip(est.log.seed_frame, seeds, strict=True):

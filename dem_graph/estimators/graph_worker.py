@@ -369,7 +369,7 @@ def _serve(conn, one_at_a_time: bool = False) -> None:
 
 
 _STOP = object()  # tells the sending thread to end
-READY_TIMEOUT_S = 1.0  # how often the wait for the second process to start checks it is still there, seconds
+_READY_CHECK_S = 1.0  # how often the wait for the second process to start checks it is still there, seconds
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
@@ -447,7 +447,7 @@ class ProcessGraph:
         """Until the process has imported and built its graph (a second or more): a run at the camera's
         rate then starts its clock with the graph able to take keyframes, rather than spending its
         first second waiting for it (0.9 s in the 150-frame bench at 500 points, 267feb5)."""
-        while not self._conn.poll(READY_TIMEOUT_S):
+        while not self._conn.poll(_READY_CHECK_S):
             if self._process.poll() is not None:
                 raise DemGraphError(f"the graph process ended while starting (exit code {self._process.returncode})")
         kind, _ = self._receive()  # (an error the process reports, or its end, raises here)

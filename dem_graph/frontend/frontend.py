@@ -265,11 +265,7 @@ class FrontEnd:
         self.counters[_TRACK_COUNTER[status]] += 1
         if status is not TrackStatus.OK:
             track.misses += 1
-            return
-        track.misses = 0
-        track.n_tracked += 1
-        every = self.config.refresh_patch_every
-        if every and T_world_cam is not None and track.n_tracked % every == 0:
+        elif self._matched(track, T_world_cam):
             self._refresh_patch(track, image, uv, t_s, T_world_cam)
 
     def _record_many(self, image, point_ids: np.ndarray, batch: TrackBatch, t_s: float, T_world_cam) -> None:
@@ -281,19 +277,23 @@ class FrontEnd:
         ok = batch.ok
         for point_id in point_ids[~ok].tolist():
             tracks[point_id].misses += 1
-        every = self.config.refresh_patch_every
-        refresh = bool(every) and T_world_cam is not None
-        due = []
+        due = []  # (index among the matched, track) of the patches to refresh
         for k, point_id in enumerate(point_ids[ok].tolist()):
             track = tracks[point_id]
-            track.misses = 0
-            track.n_tracked += 1
-            if refresh and track.n_tracked % every == 0:
+            if self._matched(track, T_world_cam):
                 due.append((k, track))
         if due:
             uv_ok = batch.uv_px[ok]
             for k, track in due:
                 self._refresh_patch(track, image, uv_ok[k], t_s, T_world_cam)
+
+    def _matched(self, track: PointTrack, T_world_cam) -> bool:
+        """A track matched: its misses reset and its matches counted. Returns whether its patch is due
+        for a refresh (every ``refresh_patch_every`` matches, with the camera pose to cut it from)."""
+        track.misses = 0
+        track.n_tracked += 1
+        every = self.config.refresh_patch_every
+        return bool(every) and T_world_cam is not None and track.n_tracked % every == 0
 
     def _refresh_patch(self, track: PointTrack, image, uv, t_s: float, T_world_cam) -> None:
         """The track's patch re-cut at its match ``uv`` in this frame (when it can be)."""

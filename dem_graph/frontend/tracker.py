@@ -181,7 +181,6 @@ class TrackBatch:
         return [(_STATUS_OF_CODE[int(codes[k])], int(counts[k])) for k in np.argsort(first, kind="stable").tolist()]
 
 
-
 def _grey_image(image: np.ndarray) -> np.ndarray:
     """Check an image is uint8 grey (H, W) or BGR (H, W, 3); returned unchanged (converted lazily)."""
     if not isinstance(image, np.ndarray) or image.dtype != np.uint8:
