@@ -274,18 +274,12 @@ class FrontEnd:
         for status, count in batch.status_counts():
             self.counters[_TRACK_COUNTER[status]] += count
         tracks = self.tracks
-        ok = batch.ok
-        for point_id in point_ids[~ok].tolist():
+        for point_id in point_ids[~batch.ok].tolist():
             tracks[point_id].misses += 1
-        due = []  # (index among the matched, track) of the patches to refresh
-        for k, point_id in enumerate(point_ids[ok].tolist()):
-            track = tracks[point_id]
+        for i in np.flatnonzero(batch.ok).tolist():
+            track = tracks[int(point_ids[i])]
             if self._matched(track, T_world_cam):
-                due.append((k, track))
-        if due:
-            uv_ok = batch.uv_px[ok]
-            for k, track in due:
-                self._refresh_patch(track, image, uv_ok[k], t_s, T_world_cam)
+                self._refresh_patch(track, image, batch.uv_px[i], t_s, T_world_cam)
 
     def _matched(self, track: PointTrack, T_world_cam) -> bool:
         """A track matched: its misses reset and its matches counted. Returns whether its patch is due
@@ -318,9 +312,13 @@ class FrontEnd:
         return max(free, 0)
 
     def _far_from(self, uv: np.ndarray, occupied_uv: np.ndarray) -> bool:
+        return self._far_from_each(np.asarray(uv, dtype=float).reshape(1, 2), occupied_uv)[0]
+
+    def _far_from_each(self, uv: np.ndarray, occupied_uv: np.ndarray) -> list[bool]:
+        """Per pixel of ``uv`` (m,2): whether it is at least ``min_separation_px`` from every pixel of ``occupied_uv`` (n,2)."""
         if len(occupied_uv) == 0:
-            return True
-        return bool(np.min(np.sum((occupied_uv - uv) ** 2, axis=1)) >= self.config.min_separation_px**2)
+            return [True] * len(uv)
+        return (np.sum((occupied_uv[None, :, :] - uv[:, None, :]) ** 2, axis=2).min(axis=1) >= self.config.min_separation_px**2).tolist()
 
     def _register(self, kind: PointKind, image, uv, t_s, T_world_cam) -> int | None:
         patch = self.tracker.make_patch(image, uv, t_s)
@@ -370,20 +368,15 @@ class FrontEnd:
         squared distances as one candidate at a time), to the seeded ones per candidate."""
         T_world_cam = T_world_body @ self.T_body_cam
         live = np.asarray(occupied_uv, dtype=float).reshape(-1, 2)
-        min_d2 = self.config.min_separation_px**2
         seeded = np.empty((budget, 2))
         n = 0
         candidates = np.fromiter(candidates, dtype=np.int64)
         for start in range(0, len(candidates), _SEED_CHUNK):
             chunk = candidates[start : start + _SEED_CHUNK]
-            if len(live):
-                far_from_live = (np.sum((live[None, :, :] - uv[chunk][:, None, :]) ** 2, axis=2).min(axis=1) >= min_d2).tolist()
-            else:
-                far_from_live = [True] * len(chunk)
-            for k, far in zip(chunk.tolist(), far_from_live):
+            for k, far in zip(chunk.tolist(), self._far_from_each(uv[chunk], live)):
                 if n >= budget:
                     return
-                if not far or (n and not self._far_from(uv[k], seeded[:n])):
+                if not far or not self._far_from(uv[k], seeded[:n]):
                     continue
                 point_id = self._register(kind, image, uv[k], t_s, T_world_cam)
                 if point_id is None:

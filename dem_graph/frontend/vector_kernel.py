@@ -8,7 +8,7 @@ block of ``BLOCK_ROWS`` x ``BLOCK_LANES`` sums in vector registers over the whol
 Each sum is formed exactly as the plain loop formed it: zero, then for every template pixel in row-
 major order, the product rounded, then the sum rounded (a multiply, then an add; no fused
 multiply-add, which LLVM does not form without fast-math flags). The scores are therefore the same
-to the bit (tests/test_track_many.py), and the EKF baselines' tracks with them.
+to the bit (tests/test_fast_paths.py), and the EKF baselines' tracks with them.
 """
 
 from __future__ import annotations
