@@ -311,9 +311,6 @@ class FrontEnd:
             free = min(free, self.config.max_laser_points - n_laser, self.config.laser_points_per_scan)
         return max(free, 0)
 
-    def _far_from(self, uv: np.ndarray, occupied_uv: np.ndarray) -> bool:
-        return self._far_from_each(np.asarray(uv, dtype=float).reshape(1, 2), occupied_uv)[0]
-
     def _far_from_each(self, uv: np.ndarray, occupied_uv: np.ndarray) -> list[bool]:
         """Per pixel of ``uv`` (m,2): whether it is at least ``min_separation_px`` from every pixel of ``occupied_uv`` (n,2)."""
         if len(occupied_uv) == 0:
@@ -376,7 +373,7 @@ class FrontEnd:
             for k, far in zip(chunk.tolist(), self._far_from_each(uv[chunk], live)):
                 if n >= budget:
                     return
-                if not far or not self._far_from(uv[k], seeded[:n]):
+                if not far or not self._far_from_each(uv[k : k + 1], seeded[:n])[0]:
                     continue
                 point_id = self._register(kind, image, uv[k], t_s, T_world_cam)
                 if point_id is None:
