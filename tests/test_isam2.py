@@ -320,7 +320,7 @@ def test_batch_online_pass_is_the_online_estimator_at_its_spacing(smoke_log, isa
     assert run.metrics.trajectory_online.ate_rmse_m == pytest.approx(isam2_run.metrics.trajectory.ate_rmse_m, rel=1e-9)
     # --keyframe-every sets the spacing of the run's own estimator only
     assert run_config(overrides=RunOverrides(estimator="isam2-batch", keyframe_every=3)).isam2.batch_keyframe_every == 3
-    assert run_config(overrides=RunOverrides(estimator="isam2-batch", keyframe_every=3)).isam2.keyframe_every == 1
+    assert run_config(overrides=RunOverrides(estimator="isam2-batch", keyframe_every=3)).isam2.keyframe_every is None
     assert run_config(overrides=RunOverrides(estimator="isam2", keyframe_every=3)).isam2.keyframe_every == 3
 
 
@@ -408,3 +408,25 @@ def test_a_landmark_bound_keeps_the_graph_small_and_the_rest_in_the_front_end(sm
     assert own.sum() > 100 and (~own).sum() > 100
     assert np.sqrt(np.nanmean(dz[own] ** 2)) < 0.03
     assert np.sqrt(np.nanmean(dz[~own] ** 2)) < 0.03
+
+
+def test_the_vehicles_graph_spaces_its_keyframes_by_its_landmarks():
+    """On the vehicle (the graph in a second process, results when ready) every live point is a
+    landmark and the keyframes are spaced so that the graph takes at most
+    ``graph_landmarks_per_frame`` landmark observations a frame: ceil(live / per frame) frames, with
+    room to run 3 keyframes ahead per frame of spacing. Everywhere else the spacing is the set one,
+    or 1."""
+    vehicle = Isam2Config(graph_process=True)
+    assert vehicle.graph_landmark_budget is None
+    assert [vehicle.keyframe_spacing_for(n) for n in (0, 150, 250, 251, 486, 500, 751)] == [1, 1, 1, 2, 2, 2, 4]
+    assert [vehicle.graph_lag_limit(s) for s in (1, 2, 4)] == [3, 6, 12]
+    assert vehicle.keyframe_spacing == 1  # the most at the default 150 live points: the default vehicle run keeps a keyframe every frame
+    assert Isam2Config(graph_process=True, frontend={"max_points": 500}).keyframe_spacing == 2
+    assert Isam2Config(graph_process=True, graph_landmarks_per_frame=100).keyframe_spacing_for(486) == 5
+    assert Isam2Config(graph_process=True, graph_max_landmarks=200).keyframe_spacing_for(486) == 1  # the bound's landmarks only
+    assert Isam2Config(graph_process=True, graph_max_lag=4).graph_lag_limit(2) == 4
+    assert Isam2Config(graph_process=True, keyframe_every=3).keyframe_spacing_for(100) == 3
+    # in this process, at a fixed delay, and in the batch's online pass the spacing does not follow the points
+    assert Isam2Config().keyframe_spacing_for(486) == 1
+    assert Isam2Config(graph_process=True, graph_delay_keyframes=1).keyframe_spacing_for(486) == 1
+    assert Isam2Config(batch=True, graph_process=True).keyframe_spacing_for(486) == 5

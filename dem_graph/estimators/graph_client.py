@@ -159,7 +159,7 @@ class GraphClient:
         if in_second_process and delay:
             self._graph = DelayedProcessGraph(setup, delay)
         elif in_second_process:
-            self._graph = ProcessGraph(setup, c.graph_max_lag, c.graph_process_nice)
+            self._graph = ProcessGraph(setup, c.graph_lag_limit(1), c.graph_process_nice)
         else:
             self._graph = InProcessGraph(setup, delay)
         # the results come back whenever the second process has them (no fixed delay): the run depends
@@ -209,6 +209,12 @@ class GraphClient:
     def next_keyframe(self) -> int:
         """The number the next keyframe sent will have."""
         return len(self.keyframe_t_s)
+
+    def set_lag_limit(self, keyframes: int) -> None:
+        """Keyframes the front end may run ahead of the graph's newest result from now on (a second
+        process whose results come when ready; elsewhere nothing runs ahead)."""
+        if isinstance(self._graph, ProcessGraph) and not isinstance(self._graph, DelayedProcessGraph):
+            self._graph.max_lag = int(keyframes)
 
     def ready_for_keyframe(self) -> bool:
         """The graph can take the next keyframe: in this process it always can; in a second process

@@ -8,8 +8,10 @@ Every frame (docs/isam2_design.md):
 3. update the pose against the points (:func:`~dem_graph.estimators.pose_update.update_pose`: points fixed, their covariance as
    pixel noise, Huber weights).
 
-Every frame by default (``keyframe_every: 1``), and otherwise every ``keyframe_every`` frames or
-sooner when the map runs short of points, the frame becomes a keyframe of the graph: a message
+Every frame by default, and otherwise every ``keyframe_every`` frames or sooner when the map runs
+short of points, the frame becomes a keyframe of the graph (on the vehicle, with the graph in a
+second process, every ``ceil(live points / graph_landmarks_per_frame)`` frames unless
+``keyframe_every`` is set, so that many live points do not outrun the graph): a message
 (:mod:`dem_graph.estimators.graph_worker`) with the pose, the odometry since the last keyframe,
 the frame's inlier observations and the new points with their laser or flat-ground seeds; the
 graph adds the factors and runs one iSAM2 update (:class:`~dem_graph.estimators.keyframe_graph.KeyframeGraph`), cutting the window back
@@ -191,7 +193,9 @@ class Isam2Slam(FrameDrivenEstimator):
         if self._batch is not None:
             self._batch.add_frame(event.t_s, U_odo, Q_odo, self.live.landmark[idx[inlier]], m.uv[inlier], split_old[inlier], imu_span)
         self._frames_since_keyframe += 1
-        is_keyframe = self._frames_since_keyframe >= c.keyframe_spacing or len(self.live) < c.keyframe_min_live_fraction * c.frontend.max_points
+        spacing = c.keyframe_spacing_for(len(self.live))
+        is_keyframe = self._frames_since_keyframe >= spacing or len(self.live) < c.keyframe_min_live_fraction * c.frontend.max_points
+        client.set_lag_limit(c.graph_lag_limit(spacing))
         if is_keyframe and not client.ready_for_keyframe():
             # the graph is graph_max_lag keyframes behind (graph_when_behind: merge): this frame's
             # observations go with the next keyframe (their weight with them), so that no frame waits

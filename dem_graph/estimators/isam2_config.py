@@ -3,6 +3,7 @@ with the EKF baselines."""
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 from pydantic import Field
@@ -14,7 +15,20 @@ from dem_graph.estimators.settings import SharedSettings
 class Isam2Options(StrictModel):
     """What only the graph estimator has."""
 
-    keyframe_every: int = Field(1, ge=1, description="a keyframe every this many frames (1: every frame a pose of the graph; more is faster and less accurate, docs/isam2_design.md)")
+    keyframe_every: int | None = Field(
+        None,
+        ge=1,
+        description="a keyframe every this many frames (1: every frame a pose of the graph; more is faster and less accurate, docs/isam2_design.md). "
+        "Unset: 1, except for the graph in a second process whose results come when ready (the vehicle): there as many frames as it takes "
+        "for the live points, all landmarks, to stay within graph_landmarks_per_frame (ceil(live points / graph_landmarks_per_frame))",
+    )
+    graph_landmarks_per_frame: int = Field(
+        250,
+        ge=1,
+        description="the vehicle's graph (graph_process, results when ready) with keyframe_every unset: the landmark observations it takes per "
+        "camera frame at most, which sets its keyframe spacing. 250: 235-243 landmarks a frame kept up with the camera on two cores of an AMD "
+        "EPYC (a keyframe every frame at 235 live points, every second frame at 486; docs/isam2_design.md)",
+    )
     observation_every: int | None = Field(
         None,
         ge=1,
@@ -60,14 +74,15 @@ class Isam2Options(StrictModel):
         None,
         ge=1,
         description="live points that are landmarks of the graph, at most: a new point beyond it stays in the front end only (its own estimate, "
-        "updated at each keyframe with the pose held fixed and moved with the graph's corrections), so that an update's cost does not grow "
-        "with --max-points. New laser points are taken before camera points. Unset: 150 with graph_process and no graph_delay_keyframes "
-        "(above the default max_points, so the default vehicle run is unchanged), else no bound",
+        "updated at each keyframe with the pose held fixed and moved with the graph's corrections). New laser points are taken before camera "
+        "points. Unset: no bound (the vehicle's graph spaces its keyframes instead, graph_landmarks_per_frame)",
     )
-    graph_max_lag: int = Field(
-        3,
+    graph_max_lag: int | None = Field(
+        None,
         ge=1,
-        description="graph_process: keyframes the front end may run ahead of the graph's newest result; beyond, see graph_when_behind",
+        description="graph_process: keyframes the front end may run ahead of the graph's newest result; beyond, see graph_when_behind. "
+        "Unset: 3 keyframes per frame of keyframe spacing (3 at a keyframe every frame, 6 at every second frame: the window's cut, whose "
+        "cost follows the landmarks, then passes without merging keyframes)",
     )
     graph_process_nice: int = Field(
         10,
@@ -135,13 +150,14 @@ class Isam2Config(SharedSettings, Isam2Options):
 
     @property
     def graph_landmark_budget(self) -> int | None:
-        """Live points that may be landmarks of the graph (None: all): ``graph_max_landmarks``; unset,
-        150 with the graph in a second process whose results come when ready; no bound for the batch."""
-        if self.batch:
-            return None
-        if self.graph_max_landmarks is not None:
-            return self.graph_max_landmarks
-        return 150 if self.graph_process and not self.graph_delay_keyframes else None
+        """Live points that may be landmarks of the graph (None: all): ``graph_max_landmarks``; no bound
+        for the batch."""
+        return None if self.batch else self.graph_max_landmarks
+
+    @property
+    def results_when_ready(self) -> bool:
+        """The graph runs in a second process whose results come when ready (the vehicle)."""
+        return not self.batch and self.graph_process and not self.graph_delay_keyframes
 
     @property
     def graph_placement(self) -> tuple[bool, int]:
@@ -153,10 +169,29 @@ class Isam2Config(SharedSettings, Isam2Options):
             return True, self.batch_graph_delay_keyframes
         return self.graph_process, self.graph_delay_keyframes
 
+    def keyframe_spacing_for(self, live_points: int) -> int:
+        """Frames between keyframes with ``live_points`` live points: ``batch_keyframe_every`` for the
+        batch's online pass; ``keyframe_every`` when set; unset, on the vehicle's graph, enough frames
+        for its landmarks to stay within ``graph_landmarks_per_frame`` (every live point is one there
+        unless ``graph_max_landmarks`` bounds them), and 1 elsewhere."""
+        if self.batch:
+            return self.batch_keyframe_every
+        if self.keyframe_every is not None:
+            return self.keyframe_every
+        if not self.results_when_ready:
+            return 1
+        landmarks = live_points if self.graph_max_landmarks is None else min(live_points, self.graph_max_landmarks)
+        return max(1, math.ceil(landmarks / self.graph_landmarks_per_frame))
+
     @property
     def keyframe_spacing(self) -> int:
-        """Frames between keyframes in this run: ``batch_keyframe_every`` for the batch's online pass, else ``keyframe_every``."""
-        return self.batch_keyframe_every if self.batch else self.keyframe_every
+        """The most frames between keyframes in this run (at ``frontend.max_points`` live points; see :meth:`keyframe_spacing_for`)."""
+        return self.keyframe_spacing_for(self.frontend.max_points)
+
+    def graph_lag_limit(self, spacing: int) -> int:
+        """Keyframes the front end may run ahead of the graph's newest result at a keyframe every
+        ``spacing`` frames: ``graph_max_lag``, unset 3 per frame of spacing."""
+        return self.graph_max_lag if self.graph_max_lag is not None else 3 * spacing
 
 
 __all__ = ["Isam2Config", "Isam2Options"]
