@@ -164,7 +164,7 @@ class GraphClient:
             self._graph = InProcessGraph(setup, delay)
         # the results come back whenever the second process has them (no fixed delay): the run depends
         # on the timing, and nothing in a frame waits for them
-        self.results_when_ready = in_second_process and not delay
+        self.results_when_ready = c.results_when_ready
         self._when_behind = c.graph_when_behind or "merge"
         # per graph update taken: its time by phase, seconds ("total": the whole update)
         self.update_phases: dict[str, list[float]] = {}

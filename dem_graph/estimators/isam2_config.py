@@ -156,8 +156,9 @@ class Isam2Config(SharedSettings, Isam2Options):
 
     @property
     def results_when_ready(self) -> bool:
-        """The graph runs in a second process whose results come when ready (the vehicle)."""
-        return not self.batch and self.graph_process and not self.graph_delay_keyframes
+        """The graph runs in a second process whose results come when ready, at no fixed delay (the vehicle; :attr:`graph_placement`)."""
+        in_second_process, delay = self.graph_placement
+        return in_second_process and not delay
 
     @property
     def graph_placement(self) -> tuple[bool, int]:
