@@ -213,7 +213,7 @@ class GraphClient:
     def set_lag_limit(self, keyframes: int) -> None:
         """Keyframes the front end may run ahead of the graph's newest result from now on (a second
         process whose results come when ready; elsewhere nothing runs ahead)."""
-        if isinstance(self._graph, ProcessGraph) and not isinstance(self._graph, DelayedProcessGraph):
+        if self.results_when_ready:  # (the graph is then a ProcessGraph)
             self._graph.max_lag = int(keyframes)
 
     def ready_for_keyframe(self) -> bool:
