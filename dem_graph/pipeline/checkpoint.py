@@ -5,7 +5,8 @@ and, every ``checkpoint_every_s`` of wall time, writes the trajectory so far (``
 the pose each frame had when it was made) and the map points that have left the estimator
 (``points.ply``). Each file is written whole under a temporary name and renamed over the old one
 (an atomic rename on POSIX), so a SIGKILL at any moment leaves every file readable. The run's end
-(normal, a Ctrl-C or an error) writes the whole folder over them.
+(normal, a Ctrl-C or an error) writes the whole folder over them. The saved live maps are kept in
+the folder too, appended as each is saved (``live_maps.part``, :mod:`dem_graph.io.live_maps`).
 
 :func:`stop_at_event_boundaries` makes Ctrl-C and SIGTERM (a service manager's stop) end the run
 between two events, where the estimator's state is whole, so the end of the run can be written.

@@ -7,7 +7,8 @@ run's metrics and folder.
   :class:`~dem_graph.evaluation.dem_metrics.LocalErrorSeries`). The hindsight figure
   (``dem.local_window``) fuses, at the same times, the same measurements placed with the run's final poses.
 - :class:`LiveMapRecorder`: every ``live_map.save_every_n_frames`` frames, the local map over a
-  fixed window, for ``live_maps.nc`` (:mod:`dem_graph.io.live_maps`).
+  fixed window, for ``live_maps.nc`` (:mod:`dem_graph.io.live_maps`), in the run folder as it goes
+  (``live_maps.part``) when the run has one.
 - :class:`LiveMapMetrics`: ``metrics.json``'s ``live_map``.
 """
 
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from pathlib import Path
 
 from dem_graph.datasets.base import GroundTruth
 from dem_graph.dem.layers import Dem
@@ -31,7 +33,7 @@ from dem_graph.evaluation.dem_metrics import (
 from dem_graph.evaluation.results import MetricsModel, Number
 from dem_graph.evaluation.timing import TimingStats, resident_memory_mb
 from dem_graph.geometry.grid import GridGeometry
-from dem_graph.io.live_maps import SAVED_LAYERS, LiveMapWriter
+from dem_graph.io.live_maps import LIVE_MAPS_NC, SAVED_LAYERS, LiveMapWriter
 from dem_graph.pipeline.config import LiveMapConfig
 from dem_graph.pipeline.live import LivePipeline, LiveUpdate
 
@@ -104,13 +106,14 @@ class LiveErrorMeter:
 
 class LiveMapRecorder:
     """A listener: every ``save_every_n_frames`` frames' local map over the fixed save window, kept
-    on disk until :meth:`write` (``live_maps.nc``)."""
+    on disk until :meth:`write` (``live_maps.nc``). ``run_dir``: the run folder, where the maps are
+    appended as they are saved (``live_maps.part``, readable after a kill); None: a temporary file."""
 
-    def __init__(self, pipeline: LivePipeline, config: LiveMapConfig):
+    def __init__(self, pipeline: LivePipeline, config: LiveMapConfig, run_dir: str | Path | None = None):
         self.pipeline, self.config = pipeline, config
         x0, x1 = config.save_x_range_m
         self.geometry = GridGeometry.covering(x0, -config.save_width_m / 2.0, x1, config.save_width_m / 2.0, pipeline.map.fusion.resolution_m)
-        self.writer = LiveMapWriter(self.geometry, SAVED_LAYERS)
+        self.writer = LiveMapWriter(self.geometry, SAVED_LAYERS, None if run_dir is None else Path(run_dir) / LIVE_MAPS_NC)
 
     def __call__(self, update: LiveUpdate) -> None:
         if (update.frame - 1) % self.config.save_every_n_frames:
@@ -136,9 +139,11 @@ class LiveRun:
     recorder: LiveMapRecorder | None = None
 
     @classmethod
-    def attach(cls, pipeline: LivePipeline, truth: GroundTruth | None, window: LocalErrorConfig) -> LiveRun:
+    def attach(cls, pipeline: LivePipeline, truth: GroundTruth | None, window: LocalErrorConfig, run_dir: str | Path | None = None) -> LiveRun:
+        """The live parts for ``pipeline``, added to its listeners; ``run_dir``: the run folder, which
+        the saved local maps are written into as they are saved (:class:`LiveMapRecorder`)."""
         meter = LiveErrorMeter(pipeline, truth, window) if truth is not None and truth.elevation is not None else None
-        recorder = LiveMapRecorder(pipeline, pipeline.config.live_map) if pipeline.config.live_map.save_every_n_frames else None
+        recorder = LiveMapRecorder(pipeline, pipeline.config.live_map, run_dir) if pipeline.config.live_map.save_every_n_frames else None
         memory = MemoryProbe()
         pipeline.listeners.extend(x for x in (meter, recorder, memory) if x is not None)
         return cls(pipeline, truth, window, memory, meter, recorder)

@@ -127,7 +127,8 @@ def run_estimator(
     the events come, measured against the truth as the guidance had it), then make the run's
     metrics and its DEM from the final poses. ``viewer``: show it in rerun as it goes, or record it.
     ``checkpoint_dir``: the run folder, where the trajectory and map points so far are kept current
-    every ``config.checkpoint_every_s`` (:mod:`~dem_graph.pipeline.checkpoint`). ``instrument``: called
+    every ``config.checkpoint_every_s`` (:mod:`~dem_graph.pipeline.checkpoint`) and the saved live
+    maps are appended as they are saved (:mod:`~dem_graph.io.live_maps`). ``instrument``: called
     with the pipeline before the first event, for studies that change what a part sees
     (:class:`~dem_graph.studies.ablation.TrueTracks`).
 
@@ -144,7 +145,7 @@ def run_estimator(
         pipeline = LivePipeline.for_sequence(sequence, config, strict_order=True)
         if instrument is not None:
             instrument(pipeline)
-        live = LiveRun.attach(pipeline, sequence.ground_truth, config.local_error)
+        live = LiveRun.attach(pipeline, sequence.ground_truth, config.local_error, run_dir=checkpoint_dir)
         shown = ViewerListener(pipeline, viewer, sequence.ground_truth) if viewer is not None else None
         if shown is not None:
             pipeline.listeners.append(shown)

@@ -14,6 +14,8 @@
       local_dem_error.csv    with ground truth: the Fig. 8 measure frame by frame, in hindsight
       live_map.tif           the map as it was built while the run went (GeoTIFF, layers as dem.tif's)
       live_maps.nc           every k-th frame's local map as the guidance had it (netCDF: time x y x x)
+      live_maps.part         the same maps while the run goes, appended as saved; the run's end turns it
+                             into live_maps.nc, and after a kill it is read in its place (:mod:`dem_graph.io.live_maps`)
       live_dem_error.csv     with ground truth: the Fig. 8 measure on the live map, frame by frame
 
 Reading back: :func:`read_run_metrics`, :func:`run_folder_config`, :func:`load_run_poses`,
@@ -42,7 +44,7 @@ from dem_graph.evaluation.dem_metrics import LocalErrorSeries
 from dem_graph.geometry.rig import SensorRig, rig_to_dict
 from dem_graph.geometry.trajectory import Trajectory
 from dem_graph.io.dem_files import write_cloud_ply, write_dem_geotiff, write_dem_npz
-from dem_graph.io.live_maps import live_map_at
+from dem_graph.io.live_maps import LIVE_MAPS_NC, live_map_at, live_maps_part_path
 from dem_graph.io.npz import read_npz
 from dem_graph.io.ply import read_points_ply, write_points_ply
 from dem_graph.io.tum import write_tum
@@ -60,7 +62,6 @@ POSES_NPZ = "poses.npz"
 POINTS_PLY = "points.ply"
 LOCAL_ERROR_CSV = "local_dem_error.csv"
 LIVE_MAP_TIF = "live_map.tif"
-LIVE_MAPS_NC = "live_maps.nc"
 LIVE_ERROR_CSV = "live_dem_error.csv"
 _RESERVED = ("trajectory", "points", "metrics", "config")
 
@@ -362,12 +363,18 @@ def remake_dem(run_dir: str | Path, dataset: str | Path | None = None, at_s: flo
 
 
 def live_map_of_run(run_dir: str | Path, t_s: float) -> Dem:
-    """The live local map a run saved last at or before ``t_s`` (``RUN/live_maps.nc``)."""
-    run_dir = require_run_folder(run_dir)
+    """The live local map a run saved last at or before ``t_s`` (``RUN/live_maps.nc``). A run that
+    did not end (killed, or still going) has no ``live_maps.nc`` and may have no ``poses.npz`` yet:
+    its maps are read from ``RUN/live_maps.part`` with a warning, and ``t_s`` is checked against
+    the run's poses only if they were written."""
+    run_dir = Path(run_dir)
     path = run_dir / LIVE_MAPS_NC
-    if not path.is_file():
-        raise DatasetError(path, "not found: the run saved no live map (an older run, or live_map.save_every_n_frames: 0); --hindsight makes one from its poses")
-    require_time(load_run_poses(run_dir), t_s)
+    if path.is_file() or not live_maps_part_path(path).is_file():
+        run_dir = require_run_folder(run_dir)
+        if not path.is_file():
+            raise DatasetError(path, "not found: the run saved no live map (an older run, or live_map.save_every_n_frames: 0); --hindsight makes one from its poses")
+    if (run_dir / POSES_NPZ).exists():
+        require_time(load_run_poses(run_dir), t_s)
     return live_map_at(path, t_s)
 
 
