@@ -24,6 +24,15 @@ def import_rasterio():
     return _import("rasterio", "pip install rasterio")
 
 
+def import_rosbags_typesys():
+    """``rosbags.typesys`` (message definitions, CDR, type hashes), for the ROS 2 node and player."""
+    return _import("rosbags.typesys", "pip install 'dem-graph[ros2]'")
+
+
+def import_cyclonedds():
+    """The ``cyclonedds`` package (Eclipse Cyclone DDS, one of ROS 2's middlewares), for the ROS 2 node and player."""
+    return _import("cyclonedds", "pip install 'dem-graph[ros2]' (the cyclonedds wheel bundles its C library)")
+
 
 def import_rosbags_highlevel():
     """``rosbags.highlevel`` (AnyReader), for reading ROS 1 and ROS 2 bags."""

@@ -15,12 +15,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dem_graph.datasets.events import CameraFrame, LaserScan, Odometry
+from dem_graph.datasets.events import CameraFrame, ImuSample, LaserScan, Odometry
 from dem_graph.datasets.folder import FolderSequence
 from dem_graph.geometry.rig import PlanarBeams
 from dem_graph.geometry.se3 import invert, make_pose, quat_xyzw_from_matrix
 
-IMAGE, INFO, SCAN, ODOM = "/camera/image_raw", "/camera/camera_info", "/scan", "/odom"
+IMAGE, INFO, SCAN, ODOM, IMU = "/camera/image_raw", "/camera/camera_info", "/scan", "/odom", "/imu/data"
 CAMERA_FRAME, LASER_FRAME = "camera_optical_frame", "laser"
 T_FOOTPRINT_LINK = make_pose(np.eye(3), [0.0, 0.0, 0.3])  # base_link 0.3 m above the ground
 EPOCH_S = 1_700_000_000  # stamps as a robot's clock gives them
@@ -41,6 +41,7 @@ class BagEdits:
     rectified: bool = False  # the image topic is image_rect, its CameraInfo's P the rig's intrinsics
     distortion_model: str = "plumb_bob"
     extra: list = field(default_factory=list)
+    imu: bool = False  # the folder's IMU as sensor_msgs/Imu on /imu/data (frame imu_link, its mount on /tf_static)
 
 
 def _stamp(t_s: float) -> tuple[int, int]:
@@ -122,6 +123,16 @@ def robot_messages(folder, edits: BagEdits | None = None):
                     range_min=rig.laser.range_min_m, range_max=rig.laser.range_max_m, ranges=r, intensities=np.zeros(0, dtype=np.float32),
                 )
                 out.append((SCAN, "sensor_msgs/msg/LaserScan", ns_of(e.t_s), msg))
+            elif isinstance(e, ImuSample) and edits.imu:
+                V, Q = T[G + "Vector3"], T[G + "Quaternion"]
+                no_orientation = np.zeros(9)
+                no_orientation[0] = -1.0  # ROS: "no orientation estimate"
+                msg = T["sensor_msgs/msg/Imu"](
+                    header=header(e.t_s, "imu_link"), orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0), orientation_covariance=no_orientation,
+                    angular_velocity=V(x=e.gyro_rad_s[0], y=e.gyro_rad_s[1], z=e.gyro_rad_s[2]), angular_velocity_covariance=np.zeros(9),
+                    linear_acceleration=V(x=e.accel_mps2[0], y=e.accel_mps2[1], z=e.accel_mps2[2]), linear_acceleration_covariance=np.zeros(9),
+                )
+                out.append((IMU, "sensor_msgs/msg/Imu", ns_of(e.t_s), msg))
             elif isinstance(e, Odometry):
                 poses = []
                 if odometry_pose is None:
@@ -148,6 +159,8 @@ def robot_messages(folder, edits: BagEdits | None = None):
         ]
         if not edits.no_laser_tf:
             statics.append(transform("base_link", LASER_FRAME, invert(T_FOOTPRINT_LINK) @ rig.T_body_laser, t0))
+        if edits.imu and rig.imu is not None:
+            statics.append(transform("base_link", "imu_link", invert(T_FOOTPRINT_LINK) @ rig.T_body_imu, t0))
         out.append(("/tf_static", "tf2_msgs/msg/TFMessage", ns_of(t0) - 1, T["tf2_msgs/msg/TFMessage"](transforms=statics)))
         if ros1:  # a fixed wheel frame sent by an older node as tf/tfMessage, on /tf beside the TFMessage ones
             wheel = make_pose(np.eye(3), [0.0, 0.25, 0.0])

@@ -120,6 +120,12 @@ class Estimator(abc.ABC):
     def finish(self) -> None:  # noqa: B027 - a hook with nothing to do by default
         """The log has ended: process anything held back."""
 
+    @property
+    def graph_lag_keyframes(self) -> int | None:
+        """How many keyframes after its own the graph's latest result came (a smoother whose results
+        come when ready); None for an estimator without one, or before its first result."""
+        return None
+
     @abc.abstractmethod
     def result(self) -> EstimatorResult:
         """Everything estimated so far (live points included with their current estimates)."""

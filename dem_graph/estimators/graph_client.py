@@ -428,6 +428,11 @@ class GraphClient:
         self.points.update(points)
         self._graph.close()
 
+    @property
+    def latest_lag(self) -> int | None:
+        """Keyframes sent after the one the latest result answered (None before the first result)."""
+        return self._graph_lag[-1] if self._graph_lag else None
+
     def smoothed_poses(self, last: int | None = None) -> np.ndarray:
         """Every frame's pose (or the ``last`` frames') from the latest keyframe estimates (each frame rides on the keyframe before it)."""
         poses = self.poses

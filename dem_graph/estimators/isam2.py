@@ -130,6 +130,10 @@ class Isam2Slam(FrameDrivenEstimator):
         if self._imu is not None:
             self._imu.take(event)
 
+    @property
+    def graph_lag_keyframes(self) -> int | None:
+        return self._client.latest_lag
+
     def idle(self) -> bool:
         """The last frame's keyframe work if it waited (``defer_keyframe_work``), then the graph's
         results that came back from the second process since: done now rather than first in the next

@@ -11,7 +11,7 @@ import numpy as np
 from dem_graph.datasets.base import Sequence
 from dem_graph.estimators.base import EstimatorResult
 from dem_graph.evaluation.dem_metrics import HeightErrors
-from dem_graph.evaluation.results import MetricsModel
+from dem_graph.evaluation.results import MetricsModel, Number
 from dem_graph.evaluation.timing import GraphUpdateTiming, PhaseTiming, frame_timing_summary, graph_update_timing
 from dem_graph.evaluation.trajectory_metrics import (
     NeesSummary,
@@ -56,6 +56,31 @@ def tracking_yield(counters: dict) -> TrackingYield | None:
     return TrackingYield(searches=total, matched_fraction=matched / total, outlier_fraction_of_matched=outliers / matched if matched else 0.0, failed_fraction=failed)
 
 
+class StreamHealth(MetricsModel):
+    """One input stream of a live source (the ROS 2 node): what came, and what did not as it should."""
+
+    topic: str
+    received: int  # messages taken off the wire and decoded
+    rate_hz: Number = float("nan")  # the rig's rate of the stream (NaN: none)
+    late: int = 0  # came after a later event of another stream had gone to the estimator (given to it out of order)
+    waited_out: int = 0  # given to the estimator when the reorder window ran out, before every other stream had caught up
+    missing: int = 0  # never came: gaps in the stamps beyond one and a half periods, counted in periods
+    undecodable: int = 0  # bytes that were not a message of the topic's type
+
+
+class LiveSourceMetrics(MetricsModel):
+    """What a live source delivered (``metrics.json``'s ``live_source``): the ROS 2 node's streams, the
+    transport's cost, and the faults of the graph it was on."""
+
+    source: str  # "ROS 2 domain 0"
+    streams: dict[str, StreamHealth]  # by stream: camera, camera_info, laser, odometry, imu, tf, tf_static
+    transport_median_ms: Number = float("nan")  # per frame: its messages taken and decoded, its outputs encoded and written
+    transport_p95_ms: Number = float("nan")
+    frames_published: int = 0
+    incompatible_qos: list[str] | None = None  # one line per topic and policy
+    clock_resets: int = 0  # the sources' clocks went back (a player restarted): the run ended there
+
+
 class RunMetrics(MetricsModel):
     """Everything ``metrics.json`` holds. A field is None (and left out of the file) when it was not
     measured: no frame, no ground truth, no DEM, or (``dem-graph evaluate``) not in the run folder."""
@@ -78,6 +103,7 @@ class RunMetrics(MetricsModel):
     pose_nees: NeesSummary | None = None
     dem: DemMetrics | DemFailure | None = None  # the DEM from the final poses, in hindsight
     live_map: LiveMapMetrics | None = None  # the map built while the run went, as the guidance had it
+    live_source: LiveSourceMetrics | None = None  # a live source's streams (the ROS 2 node)
     dataset: str | None = None  # the dataset's path
     dataset_options: dict[str, Any] | None = None  # how it was opened (:meth:`Sequence.open_options`)
 
@@ -227,4 +253,4 @@ def summary_lines(m: RunMetrics) -> list[str]:
     return lines
 
 
-__all__ = ["LOW_YIELD_FRACTION", "PointsPerFrame", "RunMetrics", "compute_metrics", "laser_cells_error_text", "summary_lines", "yield_advice"]
+__all__ = ["LOW_YIELD_FRACTION", "LiveSourceMetrics", "PointsPerFrame", "RunMetrics", "StreamHealth", "compute_metrics", "laser_cells_error_text", "summary_lines", "yield_advice"]
