@@ -42,6 +42,7 @@ class BagEdits:
     distortion_model: str = "plumb_bob"
     extra: list = field(default_factory=list)
     imu: bool = False  # the folder's IMU as sensor_msgs/Imu on /imu/data (frame imu_link, its mount on /tf_static)
+    blemishes: bool = False  # one bad message in a stream each, 1 ms after a good one halfway: a scan 10 beams short, an IMU sample and an odometry pose not finite
 
 
 def _stamp(t_s: float) -> tuple[int, int]:
@@ -162,6 +163,8 @@ def robot_messages(folder, edits: BagEdits | None = None):
         if edits.imu and rig.imu is not None:
             statics.append(transform("base_link", "imu_link", invert(T_FOOTPRINT_LINK) @ rig.T_body_imu, t0))
         out.append(("/tf_static", "tf2_msgs/msg/TFMessage", ns_of(t0) - 1, T["tf2_msgs/msg/TFMessage"](transforms=statics)))
+        if edits.blemishes:
+            out += _blemishes(out, header, ns_of)
         if ros1:  # a fixed wheel frame sent by an older node as tf/tfMessage, on /tf beside the TFMessage ones
             wheel = make_pose(np.eye(3), [0.0, 0.25, 0.0])
             for k in range(3):
@@ -170,6 +173,28 @@ def robot_messages(folder, edits: BagEdits | None = None):
         return sorted(out, key=lambda m: m[2])
 
     return messages
+
+
+def _blemishes(out, header, ns_of):
+    """The bad messages of :attr:`BagEdits.blemishes`, each 1 ms after the good message of its stream halfway through."""
+    import dataclasses
+
+    bad = []
+    for topic, change in ((SCAN, lambda m: {"ranges": m.ranges[:-10]}), (IMU, lambda m: {"angular_velocity": dataclasses.replace(m.angular_velocity, y=np.nan)}), (ODOM, None)):
+        msgs = [(t, m) for tp, _, t, m in out if tp == topic]
+        if not msgs:
+            continue
+        t_ns, msg = msgs[len(msgs) // 2]
+        stamp = msg.header.stamp
+        t_s = (stamp.sec - EPOCH_S) + stamp.nanosec * 1e-9 + 0.001
+        if topic == ODOM:
+            pose = dataclasses.replace(msg.pose.pose, position=dataclasses.replace(msg.pose.pose.position, x=np.nan))
+            fields = {"pose": dataclasses.replace(msg.pose, pose=pose)}
+        else:
+            fields = change(msg)
+        msgtype = {SCAN: "sensor_msgs/msg/LaserScan", IMU: "sensor_msgs/msg/Imu", ODOM: "nav_msgs/msg/Odometry"}[topic]
+        bad.append((topic, msgtype, ns_of(t_s), dataclasses.replace(msg, header=header(t_s, msg.header.frame_id), **fields)))
+    return bad
 
 
 def write_robot_bag(path, folder, fmt: str, edits: BagEdits | None = None):

@@ -97,9 +97,10 @@ class _Endpoint:
         self.bytes = 0
         self.seconds = 0.0  # time spent encoding, decoding and in Cyclone's write or take
 
-    def _dds_qos(self, dds):
+    def _dds_qos(self, dds, ignore_local: bool = False):
         P = dds.qos.Policy
-        policies = [
+        policies = [P.IgnoreLocal.Participant] if ignore_local else []  # a reader does not take this participant's own writers' messages (its own /tf)
+        policies += [
             P.Reliability.Reliable(max_blocking_time=100_000_000) if self.qos.reliable else P.Reliability.BestEffort,
             P.Durability.TransientLocal if self.qos.transient_local else P.Durability.Volatile,
             P.History.KeepLast(max(int(self.qos.depth), 1)),
@@ -151,7 +152,7 @@ class Reader(_Endpoint):
         super().__init__(participant, topic, msgtype, qos)
         dds = participant.dds
         listener = dds.core.Listener(on_requested_incompatible_qos=lambda _r, status: participant._incompatible("subscription", topic, status))
-        self._reader = dds.sub.DataReader(participant.dp, participant.topic(topic, msgtype), qos=self._dds_qos(dds), listener=listener)
+        self._reader = dds.sub.DataReader(participant.dp, participant.topic(topic, msgtype), qos=self._dds_qos(dds, ignore_local=True), listener=listener)
         self._take = participant._clayer.ddspy_take
         self.condition = dds.core.ReadCondition(self._reader, dds.core.SampleState.Any | dds.core.ViewState.Any | dds.core.InstanceState.Any)
         self.invalid = 0  # samples without data (a writer gone: its instance unregistered)

@@ -304,6 +304,7 @@ class _Session:
         self._last_stamp: dict[str, float] = {}
         self._frame_transport_s: list[float] = []
         self._transport_s_at_frame = 0.0
+        self.exact_stamps: dict[float, tuple[int, int]] = {}  # the frames' times: their images' stamps, for the outputs'
 
     # --- start --------------------------------------------------------------------------------
     def start(self) -> None:
@@ -402,7 +403,7 @@ class _Session:
         self.pipeline = LivePipeline(rig, np.eye(4), t_start, has_odometry, config)
         self.live = LiveRun.attach(self.pipeline, None, config.local_error, run_dir=self.out_dir)
         self.robot_odometry = RobotOdometry(self.frames)
-        self.publisher = MapPublisher(self.node.participant, self.pipeline, o.outputs, self.frames, o.cost_limits, self.robot_odometry)
+        self.publisher = MapPublisher(self.node.participant, self.pipeline, o.outputs, self.frames, o.cost_limits, self.robot_odometry, self.exact_stamps)
         self.pipeline.listeners.insert(0, self.publisher)  # first: the map goes out before anything else is done
         self.checkpoint = RunCheckpoint(self.pipeline, self.out_dir, config.checkpoint_every_s)
         self.pipeline.listeners.append(self.checkpoint)
@@ -457,7 +458,10 @@ class _Session:
         msg = a.message
         self._count_gap(a.stream, stamp_s(msg.header))
         if a.stream == CAMERA:
-            return s.image(msg, a.msgtype)
+            frame = s.image(msg, a.msgtype)
+            if frame is not None:
+                self.exact_stamps[frame.t_s] = (int(msg.header.stamp.sec), int(msg.header.stamp.nanosec))
+            return frame
         if a.stream == LASER:
             return s.scan(msg)
         if a.stream == ODOMETRY:

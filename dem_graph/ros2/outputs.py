@@ -58,14 +58,22 @@ class Frames:
     heading: str = "dem_graph_heading"  # the local map's: at the body, x along its heading, z up
 
 
-def stamp(codec: Codec, t_s: float):
-    """A ``builtin_interfaces/Time`` of ``t_s`` seconds (nanoseconds rounded)."""
-    ns = int(round(float(t_s) * 1e9))
-    return codec.message_class("builtin_interfaces/msg/Time")(sec=ns // 10**9, nanosec=ns % 10**9)
+def stamp(codec: Codec, t_s: float, exact: dict | None = None):
+    """A ``builtin_interfaces/Time`` of ``t_s`` seconds: the stamp ``exact`` maps ``t_s`` to (the
+    input message's own: a float of epoch seconds is only good to a few hundred nanoseconds), else
+    the whole seconds and the nanoseconds of the fraction, rounded."""
+    if exact is not None and t_s in exact:
+        sec, nanosec = exact[t_s]
+    else:
+        sec = int(np.floor(float(t_s)))
+        nanosec = int(round((float(t_s) - sec) * 1e9))
+        if nanosec >= 10**9:
+            sec, nanosec = sec + 1, nanosec - 10**9
+    return codec.message_class("builtin_interfaces/msg/Time")(sec=sec, nanosec=nanosec)
 
 
-def header(codec: Codec, t_s: float, frame_id: str):
-    return codec.message_class("std_msgs/msg/Header")(stamp=stamp(codec, t_s), frame_id=frame_id)
+def header(codec: Codec, t_s: float, frame_id: str, exact: dict | None = None):
+    return codec.message_class("std_msgs/msg/Header")(stamp=stamp(codec, t_s, exact), frame_id=frame_id)
 
 
 def pose_message(codec: Codec, T: np.ndarray):
@@ -78,13 +86,13 @@ def pose_message(codec: Codec, T: np.ndarray):
     )
 
 
-def transform_message(codec: Codec, t_s: float, parent: str, child: str, T_parent_child: np.ndarray):
+def transform_message(codec: Codec, t_s: float, parent: str, child: str, T_parent_child: np.ndarray, exact: dict | None = None):
     """A ``geometry_msgs/TransformStamped``."""
     m = codec.message_class
     T = np.asarray(T_parent_child, dtype=float)
     q = quat_xyzw_from_matrix(T[:3, :3])
     return m("geometry_msgs/msg/TransformStamped")(
-        header=header(codec, t_s, parent),
+        header=header(codec, t_s, parent, exact),
         child_frame_id=child,
         transform=m("geometry_msgs/msg/Transform")(
             translation=m("geometry_msgs/msg/Vector3")(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
@@ -100,9 +108,9 @@ def tf_message(codec: Codec, transforms: list):
 # --- GridMap -------------------------------------------------------------------------------------
 
 
-def grid_map_message(codec: Codec, dem: Dem, t_s: float, frame_id: str, layers: tuple[str, ...] = GRID_MAP_LAYERS, z_offset_m: float = 0.0):
+def grid_map_message(codec: Codec, dem: Dem, t_s: float, frame_id: str, layers: tuple[str, ...] = GRID_MAP_LAYERS, z_offset_m: float = 0.0, exact: dict | None = None):
     """``dem`` (in ``frame_id``'s axes: a local map in the heading frame, a global one in the map
-    frame) as a ``grid_map_msgs/GridMap`` at ``t_s`` (see the module). ``z_offset_m``: the height of
+    frame) as a ``grid_map_msgs/GridMap`` at ``t_s`` (see the module; ``exact``: :func:`stamp`'s). ``z_offset_m``: the height of
     the frame's z = 0 in the elevation's datum (0: the elevation is in the frame's z)."""
     m = codec.message_class
     g = dem.geometry
@@ -119,7 +127,7 @@ def grid_map_message(codec: Codec, dem: Dem, t_s: float, frame_id: str, layers: 
     Array = m("std_msgs/msg/Float32MultiArray")
     data = [Array(layout=layout, data=np.ascontiguousarray(np.asarray(dem.layers[name], dtype=np.float32)[:, ::-1]).ravel()) for name in layers]
     return m("grid_map_msgs/msg/GridMap")(
-        header=header(codec, t_s, frame_id), info=info, layers=list(layers), basic_layers=["elevation"], data=data, outer_start_index=0, inner_start_index=0,
+        header=header(codec, t_s, frame_id, exact), info=info, layers=list(layers), basic_layers=["elevation"], data=data, outer_start_index=0, inner_start_index=0,
     )
 
 
@@ -166,18 +174,18 @@ def cost_of(dem: Dem, limits: CostLimits) -> np.ndarray:
     return cost
 
 
-def occupancy_grid_message(codec: Codec, dem: Dem, t_s: float, frame_id: str, T_frame_grid: np.ndarray, limits: CostLimits):
+def occupancy_grid_message(codec: Codec, dem: Dem, t_s: float, frame_id: str, T_frame_grid: np.ndarray, limits: CostLimits, exact: dict | None = None):
     """The cost of ``dem`` (its axes those of the frame ``T_frame_grid`` places in ``frame_id``: the
     heading frame in the map frame, for a local map) as a ``nav_msgs/OccupancyGrid``."""
     m = codec.message_class
     g = dem.geometry
     T_grid_origin = make_pose(np.eye(3), [g.x_min_m, g.y_min_m, 0.0])  # the corner of smallest x and y
     info = m("nav_msgs/msg/MapMetaData")(
-        map_load_time=stamp(codec, t_s), resolution=float(g.resolution_m), width=g.n_cols, height=g.n_rows,
+        map_load_time=stamp(codec, t_s, exact), resolution=float(g.resolution_m), width=g.n_cols, height=g.n_rows,
         origin=pose_message(codec, np.asarray(T_frame_grid, dtype=float) @ T_grid_origin),
     )
     cost = cost_of(dem, limits)[::-1]  # OccupancyGrid rows run along +y
-    return m("nav_msgs/msg/OccupancyGrid")(header=header(codec, t_s, frame_id), info=info, data=np.ascontiguousarray(cost).ravel())
+    return m("nav_msgs/msg/OccupancyGrid")(header=header(codec, t_s, frame_id, exact), info=info, data=np.ascontiguousarray(cost).ravel())
 
 
 # --- Odometry ------------------------------------------------------------------------------------
@@ -193,7 +201,9 @@ def ros_pose_covariance(T_world_body: np.ndarray, covariance_rot_trans: np.ndarr
     return (A @ np.asarray(covariance_rot_trans, dtype=float) @ A.T).ravel()
 
 
-def odometry_message(codec: Codec, t_s: float, frames: Frames, T_map_body: np.ndarray, covariance_rot_trans: np.ndarray, velocity_body_mps: np.ndarray, yaw_rate_rad_s: float):
+def odometry_message(
+    codec: Codec, t_s: float, frames: Frames, T_map_body: np.ndarray, covariance_rot_trans: np.ndarray, velocity_body_mps: np.ndarray, yaw_rate_rad_s: float, exact: dict | None = None,
+):
     """``nav_msgs/Odometry`` of the body in the map frame; the twist in the body's axes (its
     covariance unknown: zeros, ROS's convention)."""
     m = codec.message_class
@@ -201,7 +211,7 @@ def odometry_message(codec: Codec, t_s: float, frames: Frames, T_map_body: np.nd
     v = np.asarray(velocity_body_mps, dtype=float)
     twist = m("geometry_msgs/msg/Twist")(linear=V3(x=float(v[0]), y=float(v[1]), z=float(v[2])), angular=V3(x=0.0, y=0.0, z=float(yaw_rate_rad_s)))
     return m("nav_msgs/msg/Odometry")(
-        header=header(codec, t_s, frames.map),
+        header=header(codec, t_s, frames.map, exact),
         child_frame_id=frames.body,
         pose=m("geometry_msgs/msg/PoseWithCovariance")(pose=pose_message(codec, T_map_body), covariance=ros_pose_covariance(T_map_body, covariance_rot_trans)),
         twist=m("geometry_msgs/msg/TwistWithCovariance")(twist=twist, covariance=np.zeros(36)),

@@ -98,7 +98,10 @@ class RobotOdometry:
 class MapPublisher:
     """A live-pipeline listener publishing each frame's tf, GridMap, cost map and odometry (see the module)."""
 
-    def __init__(self, participant: Participant, pipeline: LivePipeline, topics: OutputTopics, frames: Frames, limits: CostLimits, robot_odometry: RobotOdometry):
+    def __init__(
+        self, participant: Participant, pipeline: LivePipeline, topics: OutputTopics, frames: Frames, limits: CostLimits, robot_odometry: RobotOdometry,
+        exact_stamps: dict[float, tuple[int, int]] | None = None,
+    ):
         self.participant, self.pipeline, self.topics, self.frames, self.limits = participant, pipeline, topics, frames, limits
         self.codec = participant.codec
         self.robot_odometry = robot_odometry
@@ -112,18 +115,23 @@ class MapPublisher:
         self._owns_odom_body: bool | None = None  # decided at the first frame
         self._previous: LiveUpdate | None = None
         self.frames_published = 0
+        # the frames' times: their images' own stamps (sec, nanosec), which the outputs carry (a float of epoch seconds is not exact)
+        self.exact_stamps = exact_stamps if exact_stamps is not None else {}
 
     def __call__(self, update: LiveUpdate) -> None:
         c = self.pipeline.config
         lm = c.live_map
         dem = self.pipeline.map.local(update.T_world_body, tuple(lm.save_x_range_m), lm.save_width_m / 2.0, update.t_s, c.dem.traversability_window)
         T_map_heading = dem.meta["T_world_local"]
+        exact = self.exact_stamps
         self.tf.publish(outputs.tf_message(self.codec, self._transforms(update, T_map_heading)))
-        self.elevation.publish(outputs.grid_map_message(self.codec, dem, update.t_s, self.frames.heading))
-        self.cost.publish(outputs.occupancy_grid_message(self.codec, dem, update.t_s, self.frames.map, T_map_heading, self.limits))
+        self.elevation.publish(outputs.grid_map_message(self.codec, dem, update.t_s, self.frames.heading, exact=exact))
+        self.cost.publish(outputs.occupancy_grid_message(self.codec, dem, update.t_s, self.frames.map, T_map_heading, self.limits, exact))
         velocity, yaw_rate = self._velocity(update)
-        self.odometry.publish(outputs.odometry_message(self.codec, update.t_s, self.frames, update.T_world_body, update.covariance, velocity, yaw_rate))
+        self.odometry.publish(outputs.odometry_message(self.codec, update.t_s, self.frames, update.T_world_body, update.covariance, velocity, yaw_rate, exact))
         self._previous = update
+        for t in [t for t in exact if t <= update.t_s]:  # (the frames done)
+            del exact[t]
         self.frames_published += 1
 
     @property
@@ -144,8 +152,8 @@ class MapPublisher:
 
     # --------------------------------------------------------------------------------------------
     def _transforms(self, update: LiveUpdate, T_map_heading: np.ndarray) -> list:
-        f, t = self.frames, update.t_s
-        out = [outputs.transform_message(self.codec, t, f.map, f.heading, T_map_heading)]
+        f, t, exact = self.frames, update.t_s, self.exact_stamps
+        out = [outputs.transform_message(self.codec, t, f.map, f.heading, T_map_heading, exact)]
         T_odom_body = self.robot_odometry.at(t)
         if self._owns_odom_body is None:
             self._owns_odom_body = T_odom_body is None and not self.robot_odometry.present
@@ -155,9 +163,9 @@ class MapPublisher:
             else:
                 log.info("publishing %s -> %s (the robot's odometry owns %s -> %s)", f.map, f.odom, f.odom, f.body)
         if self._owns_odom_body:
-            out.append(outputs.transform_message(self.codec, t, f.odom, f.body, update.T_world_body))
+            out.append(outputs.transform_message(self.codec, t, f.odom, f.body, update.T_world_body, exact))
         elif T_odom_body is not None:
-            out.append(outputs.transform_message(self.codec, t, f.map, f.odom, update.T_world_body @ invert(T_odom_body)))
+            out.append(outputs.transform_message(self.codec, t, f.map, f.odom, update.T_world_body @ invert(T_odom_body), exact))
         return out
 
     def _velocity(self, update: LiveUpdate) -> tuple[np.ndarray, float]:
