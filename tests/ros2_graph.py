@@ -62,6 +62,11 @@ def play(env: dict, bag: Path, *args: str, timeout_s: float = 120.0) -> subproce
     return subprocess.run(dem_graph("ros2", "play", str(bag), *args), env=env, capture_output=True, text=True, timeout=timeout_s)
 
 
+def start_player(env: dict, bag: Path, *args: str) -> subprocess.Popen:
+    """``dem-graph ros2 play BAG`` in the background."""
+    return subprocess.Popen(dem_graph("ros2", "play", str(bag), *args), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
 class Collector:
     """The test's own subscriber: a participant in this process taking what the node publishes in a
     thread, raw and decoded, each with the time it was received."""

@@ -290,7 +290,7 @@ def derive_rig(reader, path: str | Path, topics: BagTopics, max_changed_fraction
         infos = sorted(t for t, m in names.items() if m == CAMERA_INFO_TYPE)
         derived.missing.append((intrinsics, DatasetError(
             topic_where(path, topics.image_topic),
-            f"no sensor_msgs/CameraInfo beside it (looked for {' and '.join(camera_info_candidates(topics.image_topic))}; the bag's CameraInfo topics: "
+            f"no sensor_msgs/CameraInfo beside it (looked for {' and '.join(camera_info_candidates(topics.image_topic))}; its CameraInfo topics: "
             f"{', '.join(infos) or 'none'}): record the camera's camera_info, or give --camera-info-topic, or --rig with the camera's intrinsics",
         )))
     else:

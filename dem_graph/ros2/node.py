@@ -172,7 +172,10 @@ class Inbox:
 
 
 class _ClockWentBack(Exception):
-    """A source's stamps went back by more than ``clock_back_s``."""
+    """A source's stamps went back by more than ``clock_back_s``; ``pending``: the arrivals from the
+    one that told it on, for the next map."""
+
+    pending: list = []
 
 
 class Ros2Node:
@@ -186,6 +189,8 @@ class Ros2Node:
         self._stop_reason: str | None = None
         self.runs: list[NodeRun] = []
         self.incompatible_qos: list[str] = []
+        self._carry: list[_Arrival] = []  # arrivals the last map did not take (its source had restarted)
+        self._static: list[_Arrival] = []  # every /tf_static message: latched, sent once to this node's reader, valid for every map
         self._subscribe()
         self.inbox = Inbox(self.participant, self.subscriptions)
 
@@ -240,6 +245,15 @@ class Ros2Node:
     def close(self) -> None:
         self.participant.close()
 
+    def arrivals(self, timeout_s: float) -> list[_Arrival]:
+        """The messages to take next: those a map before left, else the inbox's."""
+        if self._carry:
+            got, self._carry = self._carry, []
+        else:
+            got = self.inbox.get(timeout_s)
+        self._static.extend(a for a in got if a.stream == TF_STATIC_STREAM)
+        return got
+
     def _out_dir(self, n: int) -> Path:
         base = Path(self.options.out_dir)
         return base if n == 1 else base.with_name(f"{base.name}-{n}")
@@ -273,6 +287,7 @@ class Ros2Node:
             with threadpool_limits(limits=session.config.blas_threads, user_api="blas"):  # as a run does: the same sums, and no core taken from the graph
                 session.run()
         except _ClockWentBack as exc:
+            self._carry = list(exc.pending)
             raise _ClockWentBack(session.finish(str(exc)), str(exc)) from None
         except DemGraphError:
             if session.pipeline is not None:
@@ -309,8 +324,10 @@ class _Session:
     # --- start --------------------------------------------------------------------------------
     def start(self) -> None:
         node = self.node
+        first = [a for a in node._static if a not in node._carry]  # the static transforms an earlier map had
         while not node._stop.is_set():
-            for a in node.inbox.get(0.05):
+            got, first = first + node.arrivals(0.05), []
+            for a in got:
                 try:
                     self._check_clock(a)
                 except _ClockWentBack as exc:  # before the rig: what was kept is of the old clock
@@ -345,17 +362,36 @@ class _Session:
         have_all = self.log.count(self.node.info_topic) > 0 and self.log.count("/tf_static") > 0 and all(self.log.count(x) > 0 for x in optional)
         return have_all or self.o.rig_file is not None or waited >= self.o.topic_timeout_s
 
+    # what a topic silent from the start means (a warning each, once)
+    _SILENT = {
+        CAMERA: "no map without it: waiting for it", LASER: "no map without it: waiting for it",
+        CAMERA_INFO: "the rig needs the camera's intrinsics from it, unless --rig gives them", TF_STATIC_STREAM: "the rig needs the sensors' mounts from it, unless --rig gives them",
+        ODOMETRY: "going on without it", IMU: "going on without it",
+    }
+
     def _warn_silent(self) -> None:
-        """One warning for each topic that has given nothing ``topic_timeout_s`` after the start."""
-        if time.monotonic() - self.started_wall < self.o.topic_timeout_s:
+        """One warning for each topic that has given nothing ``topic_timeout_s`` after the first
+        message of any (the robot's drivers up), or after the start when nothing at all came."""
+        heard = min(self.first_heard.values()) if self.first_heard else None
+        now = time.monotonic()
+        if heard is None:
+            if now - self.started_wall >= self.o.topic_timeout_s and "*" not in self.silent_warned:
+                self.silent_warned.add("*")
+                topics = ", ".join(s.topic for s in self.node.subscriptions if s.stream != TF_STREAM)
+                log.warning(
+                    "no message on any topic in %.0f s (%s): is the robot on ROS_DOMAIN_ID=%d and this machine on its network? "
+                    "(`ros2 topic list` there names its topics)", self.o.topic_timeout_s, topics, self.node.participant.domain_id,
+                )
+            return
+        if now - heard < self.o.topic_timeout_s:
             return
         for sub in self.node.subscriptions:
             if sub.stream == TF_STREAM or self.log.count(sub.topic) or sub.topic in self.silent_warned:
                 continue
             self.silent_warned.add(sub.topic)
             matched = sub.reader.matched()
-            why = f"{matched} publisher(s) matched, none has sent" if matched else "no publisher on it (ros2 topic list shows the robot's topics; ROS_DOMAIN_ID must be the robot's)"
-            log.warning("no message on %s (%s) in %.0f s: %s", sub.topic, sub.msgtype, self.o.topic_timeout_s, why)
+            who = f"{matched} publisher(s) matched, none has sent" if matched else "no publisher on it"
+            log.warning("no message on %s (%s) in %.0f s, %s: %s", sub.topic, sub.msgtype, self.o.topic_timeout_s, who, self._SILENT[sub.stream])
 
     def _derive_rig(self):
         """The rig from the messages kept (a bag's rules), or None to wait longer. Refused (a
@@ -369,7 +405,9 @@ class _Session:
             if topic and not self.log.count(topic):
                 if not timed_out:
                     return None
-                log.warning("no message on %s in %.0f s: going on without it", topic, self.o.topic_timeout_s)
+                if topic not in self.silent_warned:
+                    self.silent_warned.add(topic)
+                    log.warning("no message on %s in %.0f s: going on without it", topic, self.o.topic_timeout_s)
                 setattr(topics, name, None)
         where = f"ROS 2 domain {self.node.participant.domain_id}"
         try:
@@ -433,8 +471,13 @@ class _Session:
                 break
             deadline = self.reorder.next_deadline_s()
             timeout = 0.05 if deadline is None else min(max(deadline - time.time(), 0.0), 0.05)
-            for a in node.inbox.get(timeout):
-                self._take(a)
+            arrivals = node.arrivals(timeout)
+            for i, a in enumerate(arrivals):
+                try:
+                    self._take(a)
+                except _ClockWentBack as exc:
+                    exc.pending = arrivals[i:]
+                    raise
             self._give(self.reorder.pop_ready(time.time()))
             self._between_frames()
 
@@ -593,18 +636,24 @@ class _Session:
     def _finish(self, error: str | None, drain_s: float) -> NodeRun:
         p = self.pipeline
         reason = error or self.node._stop_reason
+        deadline = time.monotonic() + drain_s
         try:
-            deadline = time.monotonic() + drain_s
             while time.monotonic() < deadline:
-                got = self.node.inbox.get(0.0)
+                got = self.node.arrivals(0.0)
                 if not got:
                     break
-                for a in got:
-                    self._take(a)
+                for i, a in enumerate(got):
+                    try:
+                        self._take(a)
+                    except _ClockWentBack:
+                        self.node._carry = got[i:]  # (what came after the source restarted is not this run's)
+                        deadline = 0.0
+                        break
+        except Exception as exc:  # noqa: BLE001 - keep what was done
+            log.error("the last messages could not be taken (%s: %s): the run is written up to there", type(exc).__name__, one_line(exc))
+        try:
             self._give(self.reorder.pop_ready(time.time(), flush=True))
             p.finish()
-        except _ClockWentBack:
-            pass  # (what came after the source restarted is not this run's)
         except Exception as exc:  # noqa: BLE001 - keep what was done
             log.error("the last events could not be processed (%s: %s): the run is written up to there", type(exc).__name__, one_line(exc))
         result = p.result()
