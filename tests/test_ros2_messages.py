@@ -180,6 +180,22 @@ def test_events_go_in_time_order_once_every_stream_has_caught_up():
     assert buf.pop_ready(2.14) == ["scan 1.20", "frame 1.20"] and len(buf) == 0
 
 
+def test_a_stream_whose_next_message_is_due_after_an_event_is_not_waited_for_and_the_laser_not_against_odometry():
+    buf = ReorderBuffer(window_s=0.1, periods_s={"laser": 0.02, "odometry": 0.02, "camera": 0.04})
+    buf.push("camera", 1.000, "frame 1.000", arrived_s=-0.03)
+    assert buf.pop_ready(-0.03) == ["frame 1.000"]
+    buf.push("laser", 1.033, "scan 1.033", arrived_s=0.0)
+    buf.push("odometry", 1.025, "odom 1.025", arrived_s=0.0)
+    assert buf.pop_ready(0.0) == []  # each waits for the camera
+    buf.push("camera", 1.040, "frame 1.040", arrived_s=0.007)
+    # the laser's next scan is due at 1.053: the frame need not wait for it; the odometry's at 1.045, within half a period of the frame: it must
+    assert buf.pop_ready(0.007) == ["odom 1.025", "scan 1.033"]
+    buf.push("odometry", 1.045, "odom 1.045", arrived_s=0.012)
+    # the frame goes, and the odometry after it without waiting for the scan due at 1.053 (laser and odometry are independent)
+    assert buf.pop_ready(0.012) == ["frame 1.040", "odom 1.045"]
+    assert sum(buf.waited_out.values()) == 0 and sum(buf.late.values()) == 0
+
+
 # --- live streams against the bag reader ----------------------------------------------------
 
 

@@ -35,8 +35,9 @@ def scenarios() -> None:
 @option("--no-imu", is_flag=True, group="Scenario", help="Leave the IMU (imu.npz) out of the dataset.")
 @out_option("Dataset folder to write.", "simulate", "<scenario>", group="Output")
 @option("--overwrite", is_flag=True, group="Output", help="Replace an existing output folder.")
+@option("--bag", "bag_path", type=click.Path(path_type=Path), default=None, group="Output", help="Also write the log as a ROS bag, as a robot records one: a .bag file (ROS 1) or a folder (ROS 2, MCAP).")
 @friendly_errors
-def simulate(scenario_name, seed, length_m, speed_mps, no_odometry, no_imu, out_dir, overwrite) -> None:
+def simulate(scenario_name, seed, length_m, speed_mps, no_odometry, no_imu, out_dir, overwrite, bag_path) -> None:
     """Simulate a scenario and write it as a dataset folder with ground truth, and a preview picture."""
     from dem_graph.sim.pipeline import simulate as run
     from dem_graph.sim.scenarios import DEFAULT_SCENARIO, scenario
@@ -54,6 +55,11 @@ def simulate(scenario_name, seed, length_m, speed_mps, no_odometry, no_imu, out_
     click.echo(f"dataset: {result.out_dir}")
     if result.preview_png:
         click.echo(f"picture: {result.preview_png}")
+    if bag_path is not None:
+        from dem_graph.datasets.bag_writer import BagOptions, write_robot_bag
+
+        write_robot_bag(bag_path, result.out_dir, "ros1" if bag_path.suffix == ".bag" else "mcap", BagOptions(imu=True))
+        click.echo(f"bag: {bag_path} (topics /camera/image_raw, /camera/camera_info, /scan, /odom, /imu/data, /tf, /tf_static)")
 
 
 def _run_overrides(estimator, graph_process: bool, **values):

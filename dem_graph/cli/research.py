@@ -180,6 +180,22 @@ def bench_sim(scenario_name, n_frames, skip_full) -> None:
     click.echo(run(scenario_name, n_frames=n_frames, full=not skip_full).table())
 
 
+@research.command("bench-ros2", short_help="The ROS 2 node's latency, camera message to GridMap.")
+@option("--work", "work_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Folder for the simulated drive (its bag, kept) and each run's files.")
+@option("--duration-s", type=float, default=40.0, show_default=True, help="Seconds of driving (640x480 at 25 Hz, the laser at 50 Hz).")
+@option("--warmup-s", type=float, default=10.0, show_default=True, help="The latency is of the frames after this many seconds (the node's start is timed apart).")
+@option("--runs", type=click.IntRange(1, None), default=3, show_default=True, help="Runs of player, node and subscriber.")
+@option("--estimator", default="isam2-process", show_default=True, help="The node's estimator (isam2-process: the vehicle's).")
+@option("--seed", type=int, default=0, show_default=True, help="The drive's seed.")
+@friendly_errors
+def bench_ros2(work_dir, duration_s, warmup_s, runs, estimator, seed) -> None:
+    """Time the ROS 2 node from a camera message on the wire to the GridMap of that frame on the wire, with the player, the node and a
+    subscriber in three processes on this machine (loopback), and what the node received against what was sent."""
+    from dem_graph.studies.bench_ros2 import bench_ros2 as run
+
+    click.echo(run(work_dir, duration_s, runs, seed, estimator, warmup_s).table())
+
+
 @research.command("simulate-calibration", short_help="A synthetic calibration recording.")
 @option("--seed", type=int, default=0, show_default=True, help="Random seed.")
 @option("--views", "n_views", type=int, default=15, show_default=True, help="Board poses.")

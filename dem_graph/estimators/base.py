@@ -121,6 +121,11 @@ class Estimator(abc.ABC):
         """The log has ended: process anything held back."""
 
     @property
+    def holding_frame(self) -> bool:
+        """Whether a frame was taken but waits for its odometry (its work comes at that odometry)."""
+        return False
+
+    @property
     def graph_lag_keyframes(self) -> int | None:
         """How many keyframes after its own the graph's latest result came (a smoother whose results
         come when ready); None for an estimator without one, or before its first result."""
@@ -174,6 +179,10 @@ class FrameDrivenEstimator(Estimator):
     @property
     def last_frame(self) -> FrameRecord | None:
         return self._frames[-1] if self._frames else None
+
+    @property
+    def holding_frame(self) -> bool:
+        return self._pending_frame is not None
 
     def recent_poses(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The last ``n`` frames' times (n,), best poses known now (n,4,4) and covariances (n,6,6):

@@ -76,6 +76,14 @@ class LiveSourceMetrics(MetricsModel):
     streams: dict[str, StreamHealth]  # by stream: camera, camera_info, laser, odometry, imu, tf, tf_static
     transport_median_ms: Number = float("nan")  # per frame: its messages taken and decoded, its outputs encoded and written
     transport_p95_ms: Number = float("nan")
+    # each frame, from its image on the wire: the image's write by its publisher to its take by the node
+    # (one clock: a publisher on this machine), its wait for the other streams (the reorder buffer), and
+    # its take to its outputs written
+    camera_wire_median_ms: Number = float("nan")
+    order_wait_median_ms: Number = float("nan")
+    publish_median_ms: Number = float("nan")  # each frame's outputs: the local map over the save window, the messages made, encoded and written
+    in_node_median_ms: Number = float("nan")
+    in_node_p95_ms: Number = float("nan")
     frames_published: int = 0
     incompatible_qos: list[str] | None = None  # one line per topic and policy
     clock_resets: int = 0  # the sources' clocks went back (a player restarted): the run ended there

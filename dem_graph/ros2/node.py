@@ -55,7 +55,7 @@ from dem_graph.pipeline.live import LivePipeline
 from dem_graph.pipeline.live_run import LiveRun
 from dem_graph.pipeline.metrics import LiveSourceMetrics, StreamHealth, compute_metrics
 from dem_graph.pipeline.result import RunResult
-from dem_graph.pipeline.run import run_dem, with_dataset_speed
+from dem_graph.pipeline.run import IDLE_MIN_WAIT_S, run_dem, with_dataset_speed
 from dem_graph.pipeline.run_folder import prepare_run_folder, write_run, write_run_config, write_run_rig
 from dem_graph.ros2 import outputs
 from dem_graph.ros2.dds import Participant, Reader
@@ -320,6 +320,11 @@ class _Session:
         self._frame_transport_s: list[float] = []
         self._transport_s_at_frame = 0.0
         self.exact_stamps: dict[float, tuple[int, int]] = {}  # the frames' times: their images' stamps, for the outputs'
+        self._image_times: dict[float, list] = {}  # the frames' times: their images' write (the publisher's clock), take and release, ns
+        self._last_image_ns: int | None = None
+        self._wire_s: list[float] = []  # each frame: its image from the publisher's write to the node's take
+        self._order_wait_s: list[float] = []  # ... from its take to the pipeline (the reorder buffer's wait)
+        self._in_node_s: list[float] = []  # ... from its take to its outputs written
 
     # --- start --------------------------------------------------------------------------------
     def start(self) -> None:
@@ -445,7 +450,7 @@ class _Session:
         self.pipeline.listeners.insert(0, self.publisher)  # first: the map goes out before anything else is done
         self.checkpoint = RunCheckpoint(self.pipeline, self.out_dir, config.checkpoint_every_s)
         self.pipeline.listeners.append(self.checkpoint)
-        self.reorder = ReorderBuffer(o.reorder_window_s)
+        self.reorder = ReorderBuffer(o.reorder_window_s, periods_s={s: 1.0 / r for s in (CAMERA, LASER, ODOMETRY, IMU) if (r := self._rate(s))})
         self.started = time.perf_counter()
         self.next_global = time.monotonic() + o.global_map_period_s
         self.next_diagnostics = time.monotonic() + o.diagnostics_period_s
@@ -504,6 +509,8 @@ class _Session:
             frame = s.image(msg, a.msgtype)
             if frame is not None:
                 self.exact_stamps[frame.t_s] = (int(msg.header.stamp.sec), int(msg.header.stamp.nanosec))
+                self._image_times[frame.t_s] = [a.source_ns, a.received_ns, None]  # written, taken, given to the pipeline
+                self._last_image_ns = a.received_ns
             return frame
         if a.stream == LASER:
             return s.scan(msg)
@@ -516,6 +523,8 @@ class _Session:
     def _give(self, events: list) -> None:
         for event in events:
             if isinstance(event, CameraFrame):
+                if event.t_s in self._image_times:
+                    self._image_times[event.t_s][2] = time.time_ns()
                 frames_before = self.pipeline.updates
                 self.pipeline.on_frame(event)
                 if self.pipeline.updates > frames_before:
@@ -528,14 +537,31 @@ class _Session:
                 self._frame_published()
 
     def _frame_published(self) -> None:
-        """The transport's cost since the last frame: messages taken and decoded, outputs encoded and written."""
+        """The frame's outputs are out: the transport's cost since the last frame (messages taken and
+        decoded, outputs encoded and written), and where the frame's time went from its image's write."""
+        now_ns = time.time_ns()
         total_s = self.node.inbox.seconds + self.publisher.transport_s
         self._frame_transport_s.append(total_s - self._transport_s_at_frame)
         self._transport_s_at_frame = total_s
+        times = self._image_times.pop(self.pipeline.latest.t_s, None)
+        for t in [t for t in self._image_times if t < self.pipeline.latest.t_s]:  # (frames skipped by the pipeline)
+            del self._image_times[t]
+        if times is not None and times[2] is not None:
+            written, taken, given = times
+            self._wire_s.append((taken - written) * 1e-9)
+            self._order_wait_s.append((given - taken) * 1e-9)
+            self._in_node_s.append((now_ns - taken) * 1e-9)
 
     def _between_frames(self) -> None:
-        """After the events that came were given: the pipeline's deferred work (at the camera's rate),
-        then the global map and the diagnostics when due."""
+        """After the events that came were given, when no frame waits (for its odometry or in the
+        reorder buffer) and the next image is not due within ``IDLE_MIN_WAIT_S`` (a run at the
+        camera's rate waits as much): the pipeline's deferred work
+        (at the camera's rate), then the global map and the diagnostics when due."""
+        if self.pipeline.estimator.holding_frame or self.reorder.holds(CAMERA):  # a frame waits: its work first
+            return
+        rate = self._rate(CAMERA)
+        if self._last_image_ns is not None and rate and (self._last_image_ns * 1e-9 + 1.0 / rate) - time.time() < IDLE_MIN_WAIT_S:
+            return
         if self.config.realtime:
             self.pipeline.idle()
         now = time.monotonic()
@@ -662,10 +688,12 @@ class _Session:
         if result.frames:
             run.metrics.live_map = self.live.metrics()
             run.dem = run_dem(run, self.sequence)
-        transport = TimingStats.from_seconds(self._frame_transport_s)
+        transport, in_node = TimingStats.from_seconds(self._frame_transport_s), TimingStats.from_seconds(self._in_node_s)
         run.metrics.live_source = LiveSourceMetrics(
             source=f"ROS 2 domain {self.node.participant.domain_id}", streams=self._stream_health(), transport_median_ms=transport.median_ms,
-            transport_p95_ms=transport.p95_ms, frames_published=self.publisher.frames_published, incompatible_qos=list(self.node.participant.incompatible) or None,
+            transport_p95_ms=transport.p95_ms, camera_wire_median_ms=TimingStats.from_seconds(self._wire_s).median_ms,
+            order_wait_median_ms=TimingStats.from_seconds(self._order_wait_s).median_ms, publish_median_ms=TimingStats.from_seconds(self.publisher.publish_s).median_ms,
+            in_node_median_ms=in_node.median_ms, in_node_p95_ms=in_node.p95_ms, frames_published=self.publisher.frames_published, incompatible_qos=list(self.node.participant.incompatible) or None,
             clock_resets=self.clock_resets,
         )
         run.metrics.dataset = run.metrics.live_source.source

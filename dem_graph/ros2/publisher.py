@@ -17,6 +17,7 @@ frame), which the node publishes as ``map -> dem_graph_heading``.
 from __future__ import annotations
 
 import logging
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -115,10 +116,12 @@ class MapPublisher:
         self._owns_odom_body: bool | None = None  # decided at the first frame
         self._previous: LiveUpdate | None = None
         self.frames_published = 0
+        self.publish_s: list[float] = []  # each frame: the local map over the save window, the messages made, encoded and written
         # the frames' times: their images' own stamps (sec, nanosec), which the outputs carry (a float of epoch seconds is not exact)
         self.exact_stamps = exact_stamps if exact_stamps is not None else {}
 
     def __call__(self, update: LiveUpdate) -> None:
+        t0 = time.perf_counter()
         c = self.pipeline.config
         lm = c.live_map
         dem = self.pipeline.map.local(update.T_world_body, tuple(lm.save_x_range_m), lm.save_width_m / 2.0, update.t_s, c.dem.traversability_window)
@@ -133,6 +136,7 @@ class MapPublisher:
         for t in [t for t in exact if t <= update.t_s]:  # (the frames done)
             del exact[t]
         self.frames_published += 1
+        self.publish_s.append(time.perf_counter() - t0)
 
     @property
     def transport_s(self) -> float:
