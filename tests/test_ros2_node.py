@@ -26,7 +26,7 @@ from dem_graph.ros2.qos import DEFAULT, LATCHED  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
-GRID_MAP, ODOMETRY, COST = "grid_map_msgs/msg/GridMap", "nav_msgs/msg/Odometry", "nav_msgs/msg/OccupancyGrid"
+GRID_MAP, ODOMETRY, COST, DIAGNOSTICS = "grid_map_msgs/msg/GridMap", "nav_msgs/msg/Odometry", "nav_msgs/msg/OccupancyGrid", "diagnostic_msgs/msg/DiagnosticArray"
 TOPICS = ["--image-topic", IMAGE, "--scan-topic", SCAN, "--odometry-topic", ODOM, "--imu-topic", IMU]
 
 
@@ -59,18 +59,36 @@ def node_run(bag, bag_run, tmp_path_factory):
     domain = domain_id(0)
     env = loopback_env(root, domain)
     frames = json.loads((bag_run / "metrics.json").read_text())["frames"]
-    collector = Collector(domain, env, [("/dem_graph/elevation_map", GRID_MAP, DEFAULT.with_depth(400)), ("/dem_graph/odometry", ODOMETRY, DEFAULT.with_depth(400)), ("/dem_graph/cost_map", COST, LATCHED.with_depth(400))])
+    collector = Collector(domain, env, [
+        ("/dem_graph/elevation_map", GRID_MAP, DEFAULT.with_depth(400)), ("/dem_graph/odometry", ODOMETRY, DEFAULT.with_depth(400)),
+        ("/dem_graph/cost_map", COST, LATCHED.with_depth(400)), ("/diagnostics", DIAGNOSTICS, DEFAULT.with_depth(100)),
+    ])
     node = start_node(env, root / "run", *TOPICS, "--estimator", "ptpm", "--as-fast-as-possible", log_path=root / "node.log")
     try:
         played = play(env, bag, "--wait-for-subscribers-s", "60")
         assert played.returncode == 0, played.stderr
         collector.wait_for("/dem_graph/elevation_map", frames, timeout_s=60)
+        endpoints = _endpoints(collector.participant)  # as discovery announces them to any participant
         code = wait_node(node)
     finally:
         if node.poll() is None:
             node.kill()
         collector.close()
-    return {"out": root / "run", "code": code, "log": (root / "node.log").read_text(), "received": collector.received, "frames": frames, "played": played}
+    return {"out": root / "run", "code": code, "log": (root / "node.log").read_text(), "received": collector.received, "frames": frames, "played": played, "endpoints": endpoints}
+
+
+def _endpoints(participant):
+    """The ROS topics' writers and readers on the graph as DDS discovery tells any participant of
+    them (DCPSPublication, DCPSSubscription): (kind, DDS topic) -> (type name, QoS)."""
+    from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication, BuiltinTopicDcpsSubscription
+
+    out = {}
+    for kind, topic in (("writer", BuiltinTopicDcpsPublication), ("reader", BuiltinTopicDcpsSubscription)):
+        reader = BuiltinDataReader(participant.dp, topic)
+        for sample in reader.read(N=1000):
+            if sample.topic_name.startswith("rt/") and sample.participant_key != participant.dp.guid:
+                out.setdefault((kind, sample.topic_name), []).append((sample.type_name, sample.qos))
+    return out
 
 
 def test_the_node_stops_on_sigterm_with_its_run_folder_written(node_run):
@@ -144,3 +162,44 @@ def test_nothing_the_node_received_was_lost_and_bad_messages_cost_one_message(no
     # the bad messages: skipped, counted as the bag run counts them, and nothing else lost
     assert metrics["skipped_messages"] == truth["skipped_messages"] == {"imu_nonfinite": 1, "laser_wrong_shape": 1, "odometry_nonfinite": 1}
     assert metrics["live_source"]["frames_published"] == truth["frames"] == metrics["frames"]
+
+
+def test_the_wire_is_ros2s_as_discovery_announces_it(node_run):
+    """Topic names under rt/, ROS 2's type names, XCDR1 only, the RIHS01 type hash in USER_DATA, ROS 2's QoS profiles."""
+    from cyclonedds.qos import Policy
+
+    from dem_graph.ros2.messages import Codec
+
+    codec = Codec()
+    endpoints = node_run["endpoints"]
+    expected = {
+        ("writer", "rt/dem_graph/elevation_map"): (GRID_MAP, True, False),
+        ("writer", "rt/dem_graph/global_map"): (GRID_MAP, True, True),
+        ("writer", "rt/dem_graph/cost_map"): (COST, True, True),
+        ("writer", "rt/dem_graph/odometry"): (ODOMETRY, True, False),
+        ("writer", "rt/diagnostics"): (DIAGNOSTICS, True, False),
+        ("writer", "rt/tf"): ("tf2_msgs/msg/TFMessage", True, False),
+        ("reader", "rt/camera/image_raw"): ("sensor_msgs/msg/Image", False, False),
+        ("reader", "rt/scan"): ("sensor_msgs/msg/LaserScan", False, False),
+        ("reader", "rt/tf_static"): ("tf2_msgs/msg/TFMessage", True, True),
+    }
+    for key, (msgtype, reliable, transient_local) in expected.items():
+        found = [(t, q) for t, q in endpoints.get(key, []) if q[Policy.Userdata] is not None and q[Policy.Userdata].data.startswith(b"typehash=") and t == msgtype.replace("/msg/", "::msg::dds_::") + "_"]
+        assert found, (key, endpoints.get(key))
+        type_name, qos = found[-1]
+        assert qos[Policy.Userdata].data == f"typehash={codec.type_hash(msgtype)};".encode()
+        assert qos[Policy.DataRepresentation] == Policy.DataRepresentation(use_cdrv0_representation=True, use_xcdrv2_representation=False)
+        assert (qos[Policy.Reliability] != Policy.Reliability.BestEffort) == reliable, key
+        assert (qos[Policy.Durability] == Policy.Durability.TransientLocal) == transient_local, key
+
+
+def test_the_diagnostics_say_the_frame_time_the_graph_the_tracking_and_each_stream(node_run):
+    arrays = [m for _, m, _ in node_run["received"]["/diagnostics"]]
+    assert arrays
+    last = {s.name: s for s in arrays[-1].status}
+    assert {"dem_graph: frame time", "dem_graph: graph", "dem_graph: tracking", f"dem_graph: {IMAGE}", f"dem_graph: {SCAN}"} <= set(last)
+    values = {s.name: {kv.key: kv.value for kv in s.values} for s in arrays[-1].status}
+    assert float(values["dem_graph: frame time"]["median_ms"]) > 0 and float(values["dem_graph: frame time"]["camera_period_ms"]) == 40.0
+    assert values["dem_graph: graph"]["estimator"] == "ekf-ptpm" and last["dem_graph: graph"].message == "no graph"
+    assert int(values[f"dem_graph: {IMAGE}"]["received"]) > 0 and float(values[f"dem_graph: {SCAN}"]["rate_hz"]) == 12.5
+    assert int(values["dem_graph: tracking"]["tracked"]) > 0

@@ -92,6 +92,8 @@ class NodeOptions:
     startup_s: float = 1.0  # seconds of images and scans kept before the rig is derived (their rates)
     topic_timeout_s: float = 5.0  # a topic silent this long from the start is reported (and refused if the rig needs it)
     global_map_period_s: float = 2.0
+    cost_map_period_s: float = 0.2  # Nav2's local costmaps update at 5 Hz by default
+    cost_map_half_size_m: float = 8.0  # the cost map covers this far around the vehicle, each way
     diagnostics_period_s: float = 1.0
     clock_back_s: float = 1.0  # a stamp this far before its stream's newest: the source's clock went back
     on_clock_back: Literal["new-map", "stop"] = "new-map"
@@ -297,6 +299,12 @@ class Ros2Node:
             if session.pipeline is not None:
                 return session.finish(f"interrupted ({exc})")
             raise
+        except Exception as exc:  # noqa: BLE001 - a fault late in a long day must not lose the map: written, then one line
+            error = f"stopped by an internal error: {type(exc).__name__}: {one_line(exc)}"
+            log.debug("internal error", exc_info=True)
+            if session.pipeline is not None:
+                session.finish(error)
+            raise DemGraphError(f"{error} (the run up to there is in {out_dir}; please report it, -vv shows where)") from None
         return session.finish(None, drain_s=5.0)
 
 
@@ -316,12 +324,14 @@ class _Session:
         self.tree = None
         self.clock_resets = 0
         self._gaps = Counter()
+        self._bad = Counter()  # messages whose conversion failed, by stream
         self._last_stamp: dict[str, float] = {}
         self._frame_transport_s: list[float] = []
         self._transport_s_at_frame = 0.0
         self.exact_stamps: dict[float, tuple[int, int]] = {}  # the frames' times: their images' stamps, for the outputs'
         self._image_times: dict[float, list] = {}  # the frames' times: their images' write (the publisher's clock), take and release, ns
         self._last_image_ns: int | None = None
+        self._last_frame_wall = time.monotonic()  # when the last frame's outputs went
         self._wire_s: list[float] = []  # each frame: its image from the publisher's write to the node's take
         self._order_wait_s: list[float] = []  # ... from its take to the pipeline (the reorder buffer's wait)
         self._in_node_s: list[float] = []  # ... from its take to its outputs written
@@ -453,6 +463,7 @@ class _Session:
         self.reorder = ReorderBuffer(o.reorder_window_s, periods_s={s: 1.0 / r for s in (CAMERA, LASER, ODOMETRY, IMU) if (r := self._rate(s))})
         self.started = time.perf_counter()
         self.next_global = time.monotonic() + o.global_map_period_s
+        self.next_cost = time.monotonic()
         self.next_diagnostics = time.monotonic() + o.diagnostics_period_s
         for msg in (m for topic in ("/tf",) for _, _, m in self.log.messages([c for c in self.log.connections if c.topic == topic])):
             self.robot_odometry.add(msg, self.tree)
@@ -497,7 +508,13 @@ class _Session:
             return
         if a.stream == CAMERA_INFO:
             return
-        event = self._event(a)
+        try:
+            event = self._event(a)
+        except Exception as exc:  # noqa: BLE001 - one bad message costs that message (a field of a type no reader expects)
+            self._bad[a.stream] += 1
+            if self._bad[a.stream] in (1, 100, 1000):
+                log.warning("%s: a message that cannot be used (%s: %s): skipped (%d so far)", a.topic, type(exc).__name__, one_line(exc, 160), self._bad[a.stream])
+            return
         if event is not None:
             self._give(self.reorder.push(a.stream, event.t_s, event, a.received_ns * 1e-9))
 
@@ -546,6 +563,8 @@ class _Session:
         times = self._image_times.pop(self.pipeline.latest.t_s, None)
         for t in [t for t in self._image_times if t < self.pipeline.latest.t_s]:  # (frames skipped by the pipeline)
             del self._image_times[t]
+        self._last_frame_wall = time.monotonic()
+        self._periodic_outputs()
         if times is not None and times[2] is not None:
             written, taken, given = times
             self._wire_s.append((taken - written) * 1e-9)
@@ -555,25 +574,32 @@ class _Session:
     def _between_frames(self) -> None:
         """After the events that came were given, when no frame waits (for its odometry or in the
         reorder buffer) and the next image is not due within ``IDLE_MIN_WAIT_S`` (a run at the
-        camera's rate waits as much): the pipeline's deferred work
-        (at the camera's rate), then the global map and the diagnostics when due."""
-        if self.pipeline.estimator.holding_frame or self.reorder.holds(CAMERA):  # a frame waits: its work first
+        camera's rate waits as much): the pipeline's deferred work (at the camera's rate). With no
+        frame for a second, the periodic outputs go out anyway (the diagnostics say why)."""
+        if time.monotonic() - self._last_frame_wall > 1.0:
+            self._periodic_outputs()
+        if not self.config.realtime or self.pipeline.estimator.holding_frame or self.reorder.holds(CAMERA):  # a frame waits: its work first
             return
         rate = self._rate(CAMERA)
         if self._last_image_ns is not None and rate and (self._last_image_ns * 1e-9 + 1.0 / rate) - time.time() < IDLE_MIN_WAIT_S:
             return
-        if self.config.realtime:
-            self.pipeline.idle()
+        self.pipeline.idle()
+
+    def _periodic_outputs(self) -> None:
+        """The cost map, the global map and the diagnostics, each when due (after a frame's outputs, or with no frame for a while)."""
         now = time.monotonic()
         t_s = self.pipeline.latest.t_s if self.pipeline.latest is not None else None
-        if t_s is None:
+        if now >= self.next_diagnostics and t_s is not None:
+            self.next_diagnostics = now + self.o.diagnostics_period_s
+            self.publisher.publish_diagnostics(t_s, self._diagnostics())
+        if t_s is None or now - self._last_frame_wall > 1.0:
             return
+        if now >= self.next_cost:
+            self.next_cost = now + self.o.cost_map_period_s
+            self.publisher.publish_cost(self.o.cost_map_half_size_m)
         if now >= self.next_global:
             self.next_global = now + self.o.global_map_period_s
             self.publisher.publish_global(t_s)
-        if now >= self.next_diagnostics:
-            self.next_diagnostics = now + self.o.diagnostics_period_s
-            self.publisher.publish_diagnostics(t_s, self._diagnostics())
 
     # --- checks -------------------------------------------------------------------------------
     def _check_clock(self, a: _Arrival) -> None:
@@ -615,7 +641,7 @@ class _Session:
                 topic=sub.topic, received=int(inbox.received[sub.stream]), rate_hz=rate if rate else math.nan,
                 late=int(self.reorder.late[sub.stream]) if hasattr(self, "reorder") else 0,
                 waited_out=int(self.reorder.waited_out[sub.stream]) if hasattr(self, "reorder") else 0,
-                missing=int(self._gaps[sub.stream]), undecodable=int(inbox.undecodable[sub.stream]),
+                missing=int(self._gaps[sub.stream]), undecodable=int(inbox.undecodable[sub.stream] + self._bad[sub.stream]),
             )
         return out
 

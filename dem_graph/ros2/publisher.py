@@ -2,8 +2,9 @@
 
 :class:`MapPublisher` is a listener of the live pipeline: after each frame it publishes, in this
 order, tf, the local map ahead (``elevation_map``, a GridMap over the live map's save window, the
-window ``live_maps.nc`` keeps), its cost (``cost_map``) and the pose (``odometry``). Between frames
-the node asks it for the global map (latched, at a lower rate) and the diagnostics.
+window ``live_maps.nc`` keeps) and the pose (``odometry``). Between frames the node asks it for the
+cost map around the vehicle (``cost_map``, on a grid aligned with the map frame, as Nav2 reads one),
+the global map (latched, at a lower rate) and the diagnostics.
 
 tf (REP 105): the node's poses are of the body in the map frame, so it owns ``map -> odom``, the
 correction that puts the robot's own odometry frame in the map, as a localisation node (AMCL,
@@ -25,7 +26,7 @@ import numpy as np
 
 from dem_graph.datasets.rosbag import TransformTree, _transform_from_msg, stamp_s
 from dem_graph.geometry.lie import so3_log_many
-from dem_graph.geometry.se3 import invert
+from dem_graph.geometry.se3 import invert, make_pose
 from dem_graph.pipeline.live import LivePipeline, LiveUpdate, PoseWindow
 from dem_graph.ros2 import outputs
 from dem_graph.ros2.dds import Participant
@@ -129,11 +130,10 @@ class MapPublisher:
         exact = self.exact_stamps
         self.tf.publish(outputs.tf_message(self.codec, self._transforms(update, T_map_heading)))
         self.elevation.publish(outputs.grid_map_message(self.codec, dem, update.t_s, self.frames.heading, exact=exact))
-        self.cost.publish(outputs.occupancy_grid_message(self.codec, dem, update.t_s, self.frames.map, T_map_heading, self.limits, exact))
         velocity, yaw_rate = self._velocity(update)
         self.odometry.publish(outputs.odometry_message(self.codec, update.t_s, self.frames, update.T_world_body, update.covariance, velocity, yaw_rate, exact))
         self._previous = update
-        for t in [t for t in exact if t <= update.t_s]:  # (the frames done)
+        for t in [t for t in exact if t < update.t_s]:  # (the frames done; this one's kept for its cost map)
             del exact[t]
         self.frames_published += 1
         self.publish_s.append(time.perf_counter() - t0)
@@ -150,6 +150,17 @@ class MapPublisher:
             return
         dem = self.pipeline.map.global_dem(c.dem.traversability_window)
         self.global_map.publish(outputs.grid_map_message(self.codec, dem, t_s, self.frames.map, outputs.GLOBAL_MAP_LAYERS))
+
+    def publish_cost(self, half_size_m: float) -> None:
+        """The cost of the cells within ``half_size_m`` of the body, on a grid aligned with the map
+        frame (Nav2's costmap layers take an OccupancyGrid's origin without its rotation), at the latest frame."""
+        update = self._previous
+        if update is None:
+            return
+        T_axes = make_pose(np.eye(3), update.T_world_body[:3, 3])  # at the body, the map frame's axes
+        c = self.pipeline.config
+        dem = self.pipeline.map.local(T_axes, (-half_size_m, half_size_m), half_size_m, update.t_s, c.dem.traversability_window)
+        self.cost.publish(outputs.occupancy_grid_message(self.codec, dem, update.t_s, self.frames.map, dem.meta["T_world_local"], self.limits, self.exact_stamps))
 
     def publish_diagnostics(self, t_s: float, statuses: list) -> None:
         self.diagnostics.publish(outputs.diagnostic_array(self.codec, t_s, statuses))
