@@ -56,12 +56,14 @@ def _machine_blas_threads_for_test_run_threads(request):
 # listed takes less than 8 s; the figures need only be roughly right.
 FILE_COST_S = {
     "test_graph_worker.py": 96,
+    "test_ros2_faults.py": 80,  # three runs of the node over DDS (alone: 70 s)
     "test_isam2.py": 62,
     "test_notebooks.py": 48,
     "test_calibration_robust.py": 40,
     "test_kitti_shared.py": 39,
     "test_study_grid.py": 37,
     "test_ablation.py": 34,
+    "test_ros2_node.py": 30,
     "test_run_robustness.py": 29,
     "test_live_pipeline.py": 26,
     "test_ekf_imu.py": 24,
@@ -72,6 +74,7 @@ FILE_COST_S = {
     "test_config_yaml.py": 16,
     "test_run_config.py": 15,
     "test_track_many.py": 14,
+    "test_ros2_player.py": 14,
     "test_ekf_run.py": 13,
     "test_calibration_io.py": 12,
     "test_bag_rig.py": 12,
