@@ -173,6 +173,28 @@ class Inbox:
         return got
 
 
+class _Drain:
+    """A thread taking the readers' messages into a list while the node's own thread is busy for long
+    (:meth:`_Session._begin`); :meth:`stop` ends it and gives them, oldest first."""
+
+    def __init__(self, inbox: Inbox, period_s: float = 0.005):
+        self.inbox, self.period_s = inbox, period_s
+        self.arrivals: list = []
+        self._running = True
+        self._thread = threading.Thread(target=self._loop, name="dem_graph-ros2-drain", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while self._running:
+            self.arrivals.extend(self.inbox.get(0.0))
+            time.sleep(self.period_s)
+
+    def stop(self) -> list:
+        self._running = False
+        self._thread.join(timeout=5.0)
+        return self.arrivals + self.inbox.get(0.0)
+
+
 class _ClockWentBack(Exception):
     """A source's stamps went back by more than ``clock_back_s``; ``pending``: the arrivals from the
     one that told it on, for the next map."""
@@ -437,7 +459,17 @@ class _Session:
         return rig
 
     def _begin(self, rig) -> None:
-        """The pipeline, its listeners and the run folder, then the messages kept so far."""
+        """The pipeline, its listeners and the run folder, then the messages kept so far; what comes
+        meanwhile is taken off the readers in a thread (the estimator's start, its graph process and
+        the first compiles of its kernels take seconds: more than the readers' histories hold), and
+        is the first the run takes."""
+        drain = _Drain(self.node.inbox)
+        try:
+            self._begin_pipeline(rig)
+        finally:
+            self.node._carry = drain.stop() + self.node._carry
+
+    def _begin_pipeline(self, rig) -> None:
         o, t = self.o, self.topics
         body = t.body_frame or (self.derived.body_frame if self.derived.from_tf else None)
         self.frames = Frames(o.map_frame, o.odom_frame, self.derived.body_frame or "base_link", o.heading_frame)
