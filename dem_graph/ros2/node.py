@@ -70,8 +70,10 @@ log = logging.getLogger(__name__)
 IMAGE_MSG, COMPRESSED_MSG, INFO_MSG = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/CameraInfo"
 SCAN_MSG, ODOMETRY_MSG, IMU_MSG, TF_MSG = "sensor_msgs/msg/LaserScan", "nav_msgs/msg/Odometry", "sensor_msgs/msg/Imu", "tf2_msgs/msg/TFMessage"
 CAMERA_INFO, TF_STREAM, TF_STATIC_STREAM = "camera_info", "tf", "tf_static"
-# a reader's own history: what Cyclone keeps while the node works (5 s of a 25 Hz camera, 10 s of a 50 Hz laser, a 200 Hz IMU)
-READER_DEPTH = {CAMERA: 128, CAMERA_INFO: 128, LASER: 512, ODOMETRY: 512, IMU: 2048, TF_STREAM: 1024, TF_STATIC_STREAM: 64}
+# a reader's own history: what Cyclone keeps while the node's thread is busy, 20 s of a 25 Hz camera, a 50 Hz
+# laser, 100 Hz odometry, a 400 Hz IMU (the first start of a new installation compiles the kernels: 15 s
+# more for a run of `smoke` here, in bursts at their first use); memory only while it fills
+READER_DEPTH = {CAMERA: 512, CAMERA_INFO: 512, LASER: 1024, ODOMETRY: 2048, IMU: 8192, TF_STREAM: 4096, TF_STATIC_STREAM: 64}
 
 
 @dataclass
