@@ -101,6 +101,25 @@ def test_batches_far_apart_and_cells_never_measured():
     assert np.all(np.isnan(unknown["elevation"])) and np.all(unknown["count"] == 0) and np.all(np.isnan(unknown["last_update_s"]))
 
 
+def test_the_whole_map_made_tile_by_tile_is_the_map_sampled_cell_by_cell():
+    """to_dem()'s tiles placed whole (the global map's fast path) against sampling every cell of the
+    same grid: the same numbers, bit for bit, with batches far apart (empty tiles between) and removals."""
+    rng = np.random.default_rng(5)
+    grid = IncrementalDem(NO_GATE, tile_cells=8)
+    held = []
+    for step in range(40):
+        batch = _random_batch(rng, 25, step)
+        if step % 5 == 0:
+            batch = GroundReturns(batch.xyz_m + [30.0, -20.0, 0.0], batch.var_z_m2, batch.t_s, batch.source)
+        held.append(grid.add(batch))
+        if step % 6 == 5:
+            grid.remove(held.pop(0))
+    fast, sampled = grid.to_dem(), grid.to_dem(grid.covering_geometry())
+    assert fast.geometry == sampled.geometry and np.isfinite(fast.layers["elevation"]).sum() > 100
+    for name, layer in sampled.layers.items():
+        np.testing.assert_array_equal(fast.layers[name], layer, err_msg=name)
+
+
 def test_removing_everything_leaves_exact_zeros():
     rng = np.random.default_rng(5)
     grid = IncrementalDem(NO_GATE)

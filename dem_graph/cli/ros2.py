@@ -35,7 +35,7 @@ def ros2() -> None:
 @option("--map-frame", default="map", show_default=True, group=OUTPUT, help="The frame of the map and the poses (REP 105).")
 @option("--odom-frame", default="odom", show_default=True, group=OUTPUT, help="The robot's odometry frame: the node publishes map -> odom.")
 @option("--namespace", default="/dem_graph", show_default=True, group=OUTPUT, help="Where elevation_map, global_map, cost_map and odometry go.")
-@option("--global-map-period-s", type=float, default=2.0, show_default=True, group=OUTPUT, help="Seconds between global maps (latched).")
+@option("--global-map-period-s", type=float, default=10.0, show_default=True, group=OUTPUT, help="Seconds between global maps (latched).")
 @option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None, group=ESTIMATOR, help="YAML run settings (`dem-graph config` prints them).")
 @option(
     "--estimator", type=click.Choice(RUN_ESTIMATORS), metavar="NAME", default="isam2-process", show_default=True, group=ESTIMATOR,
