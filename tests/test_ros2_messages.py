@@ -282,3 +282,16 @@ def test_the_player_makes_ros1_messages_ros2s():
     np.testing.assert_array_equal(back.k, K)
     np.testing.assert_array_equal(back.d, [0.1, 0.2, 0.0, 0.0, 0.3])
     np.testing.assert_array_equal(back.p, np.arange(12.0))
+
+
+def test_ros_domain_id_is_read_as_ros2_reads_it():
+    from dem_graph.errors import ConfigError
+    from dem_graph.ros2.dds import localhost_only, ros_domain_id
+
+    assert ros_domain_id({}) == 0 and ros_domain_id({"ROS_DOMAIN_ID": ""}) == 0 and ros_domain_id({"ROS_DOMAIN_ID": " 42 "}) == 42
+    with pytest.raises(ConfigError, match="ROS_DOMAIN_ID='robot' is not a number"):
+        ros_domain_id({"ROS_DOMAIN_ID": "robot"})
+    with pytest.raises(ConfigError, match="ROS_DOMAIN_ID=233 is out of range: 0-232"):
+        ros_domain_id({"ROS_DOMAIN_ID": "233"})
+    assert localhost_only({"ROS_LOCALHOST_ONLY": "1"}) and localhost_only({"ROS_AUTOMATIC_DISCOVERY_RANGE": "localhost"})
+    assert not localhost_only({"ROS_LOCALHOST_ONLY": "0"}) and not localhost_only({})

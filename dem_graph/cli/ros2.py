@@ -47,11 +47,12 @@ def ros2() -> None:
 @option("--reorder-window-s", type=float, default=0.1, show_default=True, group=TIMING, help="An event waits at most this long for the other streams to catch up.")
 @option("--startup-s", type=float, default=1.0, show_default=True, group=TIMING, help="Seconds of images and scans taken before the rig is derived.")
 @option("--topic-timeout-s", type=float, default=5.0, show_default=True, group=TIMING, help="A topic silent this long from the start is reported (refused if the rig needs it).")
+@option("--warm-up/--no-warm-up", default=True, show_default=True, group=TIMING, help="Compile or load the estimator's kernels before subscribing (2-3 s; 20 s on a new installation), not while the robot's messages wait.")
 @option("--on-clock-back", type=click.Choice(["new-map", "stop"]), default="new-map", show_default=True, group=TIMING, help="When the stamps go back (a player or a robot restarted): a new map in RUN-2, or stop.")
 @out_option("Run folder, kept current as the node runs.", "ros2-node", "<domain>", group="Output")
 @option("--overwrite", is_flag=True, group="Output", help="Replace an earlier run in --out.")
 @friendly_errors
-def node_command(image_topic, scan_topic, odometry_topic, imu_topic, camera_info_topic, body_frame, camera_frame, laser_frame, rig_path, map_frame, odom_frame, namespace, global_map_period_s, config_path, estimator, max_points, max_frames, realtime, reorder_window_s, startup_s, topic_timeout_s, on_clock_back, out_dir, overwrite) -> None:
+def node_command(image_topic, scan_topic, odometry_topic, imu_topic, camera_info_topic, body_frame, camera_frame, laser_frame, rig_path, map_frame, odom_frame, namespace, global_map_period_s, config_path, estimator, max_points, max_frames, realtime, reorder_window_s, startup_s, topic_timeout_s, warm_up, on_clock_back, out_dir, overwrite) -> None:
     """Join the robot's ROS 2 graph and map from its topics while it drives: the local GridMap ahead
     (/dem_graph/elevation_map), the global one (latched), a cost map for Nav2, the odometry, tf
     (map -> odom) and /diagnostics. Ctrl-C or SIGTERM writes the run folder (docs/guide/ros2.md)."""
@@ -68,9 +69,9 @@ def node_command(image_topic, scan_topic, odometry_topic, imu_topic, camera_info
     options = NodeOptions(
         topics, out_dir, rig_path, config_path, overrides, OutputTopics(namespace=namespace), map_frame=map_frame, odom_frame=odom_frame,
         reorder_window_s=reorder_window_s, startup_s=startup_s, topic_timeout_s=topic_timeout_s, global_map_period_s=global_map_period_s,
-        on_clock_back=on_clock_back, domain_id=domain, overwrite=overwrite,
+        on_clock_back=on_clock_back, domain_id=domain, overwrite=overwrite, warm_up=warm_up,
     )
-    click.echo(f"dem_graph node on ROS 2 domain {domain}: waiting for {image_topic} and {scan_topic} (Ctrl-C to stop)", err=True)
+    click.echo(f"dem_graph node on ROS 2 domain {domain}: {'its kernels made ready, then ' if warm_up else ''}waiting for {image_topic} and {scan_topic} (Ctrl-C to stop)", err=True)
     runs = run_node(options)
     for run in runs:
         click.echo(f"map: {run.frames} frames in {run.out_dir}{f' ({run.error})' if run.error else ''}")

@@ -1,7 +1,8 @@
 """The ROS 2 node: the robot's topics in, the map its navigation reads out, with no ROS installation.
 
-:class:`Ros2Node` joins the robot's ROS 2 graph as a DDS participant (:mod:`~dem_graph.ros2.dds`)
-and goes through three phases:
+:class:`Ros2Node` makes its estimator's compiled kernels ready (:mod:`~dem_graph.pipeline.warm_up`:
+a few seconds, once a minute on a new installation), joins the robot's ROS 2 graph as a DDS
+participant (:mod:`~dem_graph.ros2.dds`) and goes through three phases:
 
 1. **Start**: it subscribes to the image (``CompressedImage`` when the topic ends in
    ``/compressed``), its CameraInfo, the scan, the odometry and IMU when named, ``/tf_static`` and
@@ -57,6 +58,7 @@ from dem_graph.pipeline.metrics import LiveSourceMetrics, StreamHealth, compute_
 from dem_graph.pipeline.result import RunResult
 from dem_graph.pipeline.run import IDLE_MIN_WAIT_S, run_dem, with_dataset_speed
 from dem_graph.pipeline.run_folder import prepare_run_folder, write_run, write_run_config, write_run_rig
+from dem_graph.pipeline.warm_up import warm_up
 from dem_graph.ros2 import outputs
 from dem_graph.ros2.dds import Participant, Reader
 from dem_graph.ros2.messages import Codec, MessageError
@@ -101,6 +103,7 @@ class NodeOptions:
     on_clock_back: Literal["new-map", "stop"] = "new-map"
     domain_id: int | None = None  # None: ROS_DOMAIN_ID
     overwrite: bool = False
+    warm_up: bool = True  # the estimator's kernels compiled (or loaded) before subscribing (pipeline.warm_up)
 
 
 @dataclass
@@ -210,6 +213,10 @@ class Ros2Node:
     def __init__(self, options: NodeOptions, participant: Participant | None = None):
         self.options = options
         self.topics = options.topics
+        if options.warm_up:
+            from dem_graph.pipeline.config import configured_estimator
+
+            warm_up(configured_estimator(options.config_file, options.overrides))
         self.participant = participant or Participant(options.domain_id, Codec())
         self._stop = threading.Event()
         self._stop_reason: str | None = None
