@@ -188,3 +188,27 @@ def test_metrics_json_is_the_typed_metrics_and_reads_back(comparison):
         text = path.read_text()
         assert text == json_text(run.metrics.to_json_dict())
         assert json_text(RunMetrics.model_validate(json.loads(text)).to_json_dict()) == text
+
+
+def test_a_run_that_tracked_nothing_is_marked_failed_and_keeps_its_folder(tiny_folder, tmp_path):
+    """The tracker's search capped at 1 px (every search refused as too large on the 0.5 m smoke log,
+    tests/test_yield_advice.py): ptpm goes to its end but matches under 10 %: its row, summary.json and
+    the report say "failed: tracking failed: ...", its folder and metrics are kept, the exit code is 2
+    with the reason; the odometry baseline, which tracks nothing, stays "ok"; the best DEM is not the
+    failed run's."""
+    config = tmp_path / "search_1px.yaml"
+    config.write_text("frontend:\n  tracker:\n    max_search_half_size_px: 1\n")
+    out = tmp_path / "cmp"
+    result = CliRunner().invoke(main, ["--no-progress", "compare", str(tiny_folder), "--out", str(out), "--estimators", "odometry,ptpm", "--config", str(config)])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    summary = json.loads((out / "summary.json").read_text())
+    ptpm = summary["runs"]["ptpm"]
+    metrics = json.loads((out / "ptpm" / "metrics.json").read_text())
+    assert metrics["status"] == "failed" and ptpm["status"] == "failed" and ptpm["error"] == metrics["failure"]
+    assert ptpm["error"].startswith("tracking failed: 0 % of ") and "(under 10 %)" in ptpm["error"]
+    assert ptpm["headline"]["ate_anchored_rmse_m"] == metrics["trajectory"]["ate_rmse_m"]  # its numbers are kept, marked
+    assert summary["runs"]["odometry"]["status"] == "ok"
+    assert f"1 of 2 runs failed (ptpm: {ptpm['error']})" in result.stderr
+    row = next(line for line in result.stdout.splitlines() if line.split() and line.split()[0] == "ptpm")
+    assert row.rstrip().endswith(f"failed: {ptpm['error']}")
+    assert summary["best_dem"] == "odometry"

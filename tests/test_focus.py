@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dem_graph.frontend.focus import FocusArea, FocusConfig, nearest_visible_ground_m
+from dem_graph.frontend.focus import FocusArea, FocusConfig
+from dem_graph.geometry.ground_view import nearest_visible_ground_m
 from dem_graph.geometry.rig import default_rig
 
 

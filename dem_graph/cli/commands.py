@@ -10,7 +10,7 @@ import click
 from dem_graph.cli.datasets import FORMAT_OPTION, dataset_options_of, open_dataset, pop_dataset_options, pop_reader_options, reader_options
 from dem_graph.cli.options import option, realtime_option
 from dem_graph.cli.out_folder import name_of, out_folder, out_option, through_links
-from dem_graph.cli.root import friendly_errors, main
+from dem_graph.cli.root import EXIT_RUN_FAILED, friendly_errors, main
 
 GRAPH_PROCESS = "isam2-process"  # pipeline.config.GRAPH_PROCESS, spelled out: the library is imported only when a command runs
 RUN_ESTIMATORS = ["gm", "ptpm", "isam2", GRAPH_PROCESS, "isam2-batch", "odometry"]
@@ -58,8 +58,9 @@ def simulate(scenario_name, seed, length_m, speed_mps, no_odometry, no_imu, out_
     if bag_path is not None:
         from dem_graph.datasets.bag_writer import BagOptions, write_robot_bag
 
-        write_robot_bag(bag_path, result.out_dir, "ros1" if bag_path.suffix == ".bag" else "mcap", BagOptions(imu=True))
-        click.echo(f"bag: {bag_path} (topics /camera/image_raw, /camera/camera_info, /scan, /odom, /imu/data, /tf, /tf_static)")
+        write_robot_bag(bag_path, result.out_dir, "ros1" if bag_path.suffix == ".bag" else "mcap", BagOptions(imu=True, image_encoding=config.camera_encoding))
+        topics = ["/camera/image_raw", "/camera/camera_info", "/scan"] + ["/odom"] * (result.n_odometry > 0) + ["/imu/data"] * (result.n_imu > 0) + ["/tf"] * (result.n_odometry > 0) + ["/tf_static"]
+        click.echo(f"bag: {bag_path} (images {config.camera_encoding}; topics {', '.join(topics)})")
 
 
 def _run_overrides(estimator, graph_process: bool, **values):
@@ -115,7 +116,7 @@ def run(dataset, fmt, config_path, max_frames, no_odometry, no_imu, estimator, m
     """Run an estimator over a dataset (a dataset folder, KITTI or a ROS bag) and write the run folder:
     trajectory, points, the DEM, metrics.json, config.yaml (docs/guide/running.md)."""
     from dem_graph.pipeline.live_view import ViewerOptions
-    from dem_graph.pipeline.metrics import summary_lines
+    from dem_graph.pipeline.metrics import failure_line, summary_lines
     from dem_graph.pipeline.run import run_dataset
 
     options = pop_reader_options(kwargs)
@@ -135,6 +136,10 @@ def run(dataset, fmt, config_path, max_frames, no_odometry, no_imu, estimator, m
     if result.error:
         click.echo(f"dem-graph: error: {result.error} (results up to there were written)", err=True)
         sys.exit(130 if result.interrupted else 2)
+    failed = failure_line(result.metrics)
+    if failed is not None:
+        click.echo(failed, err=True)
+        sys.exit(EXIT_RUN_FAILED)
 
 
 @main.command("bag-info", short_help="A ROS bag's topics, the run line, its rig.")

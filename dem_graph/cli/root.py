@@ -13,6 +13,10 @@ from dem_graph.cli.options import Group
 from dem_graph.cli.out_folder import drop_empty_folders
 from dem_graph.errors import DemGraphError
 
+EXIT_RUN_FAILED = 3
+"""The exit code of a run that went to its end and wrote its files but measured nothing (its tracking
+failed: :func:`dem_graph.pipeline.metrics.tracking_failure`); 2 is an error, 130 an interruption."""
+
 CONTEXT_SETTINGS = {"help_option_names": ["-h", "--help"], "max_content_width": 100}  # 80 columns unless the terminal is wider
 
 

@@ -11,6 +11,7 @@ import yaml
 from dem_graph.datasets.bag_rig import CAMERA_INFO_TYPE, BagTopics, camera_info_candidates, rate_hz, rig_of_bag, topic_times_ns
 from dem_graph.datasets.rosbag import IMAGE_TYPES, IMU_TYPE, ODOMETRY_TYPE, SCAN_TYPE, open_bag, topic_messages
 from dem_graph.errors import DemGraphError
+from dem_graph.geometry.ground_view import laser_view
 from dem_graph.geometry.rig import SensorRig, rig_to_dict
 
 
@@ -57,6 +58,7 @@ class BagInfo:
         out.append(f"proposed: {command}" if command else "proposed: nothing (a run needs a sensor_msgs/Image or CompressedImage topic and a LaserScan topic)")
         out += [f"  {note}" for note in self.notes]
         if self.rig is not None:
+            out.append(laser_view(self.rig).line())
             out.append("the rig it would read (save it, edit it, give it with --rig; every field overrides the bag's):")
             out += yaml.safe_dump(rig_to_dict(self.rig), sort_keys=False, default_flow_style=None).rstrip().splitlines()
         elif self.rig_problem:

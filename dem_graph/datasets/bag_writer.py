@@ -2,7 +2,7 @@
 ROS 2 node and player can be tried, tested and benchmarked without a robot
 (``dem-graph simulate --bag``, :func:`write_robot_bag`).
 
-A folder's images, scans and odometry become ``sensor_msgs/Image`` (mono8), one
+A folder's images, scans and odometry become ``sensor_msgs/Image`` (mono8, or a Bayer mosaic), one
 ``sensor_msgs/CameraInfo`` per image (ROS 1's ``D, K, R, P``, ROS 2's ``d, k, r, p``),
 ``sensor_msgs/LaserScan`` (float32 angles and ranges, the rig's range limits), ``nav_msgs/Odometry``
 (absolute poses of ``base_link`` in ``odom``, all-zero covariances) and tf: ``/tf_static`` holds
@@ -49,6 +49,7 @@ class BagOptions:
     distortion_model: str = "plumb_bob"
     extra: list = field(default_factory=list)
     imu: bool = False  # the folder's IMU as sensor_msgs/Imu on /imu/data (frame imu_link, its mount on /tf_static)
+    image_encoding: str = "mono8"  # or a Bayer pattern (bayer_gbrg8, ...): the grey scene as a colour camera of equal channel gains records it
     blemishes: bool = False  # one bad message in a stream each, 1 ms after a good one halfway: a scan 10 beams short, an IMU sample and an odometry pose not finite
 
 
@@ -112,7 +113,7 @@ def robot_messages(folder, edits: BagOptions | None = None):
             if isinstance(e, CameraFrame):
                 img = e.image if e.image.ndim == 2 else e.image[:, :, 0]
                 h, w = img.shape
-                msg = T["sensor_msgs/msg/Image"](header=header(e.t_s, CAMERA_FRAME), height=h, width=w, encoding="mono8", is_bigendian=0, step=w, data=np.ascontiguousarray(img).ravel())
+                msg = T["sensor_msgs/msg/Image"](header=header(e.t_s, CAMERA_FRAME), height=h, width=w, encoding=edits.image_encoding, is_bigendian=0, step=w, data=np.ascontiguousarray(img).ravel())
                 out.append((image_topic, "sensor_msgs/msg/Image", ns_of(e.t_s), msg))
                 if not edits.no_camera_info:
                     roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)

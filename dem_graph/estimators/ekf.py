@@ -14,6 +14,7 @@ state), and the accelerometer's mean over the frame updates roll and pitch as gr
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Literal
 
@@ -31,7 +32,10 @@ from dem_graph.estimators.point_archive import PointArchive
 from dem_graph.estimators.settings import MotionConfig, SharedSettings
 from dem_graph.frontend.frontend import FrontEnd
 from dem_graph.frontend.pose_history import PoseHistory
+from dem_graph.geometry.ground_view import laser_view
 from dem_graph.geometry.rig import SensorRig
+
+log = logging.getLogger(__name__)
 
 
 class EkfOptions(StrictModel):
@@ -60,6 +64,11 @@ class EkfSlam(FrameDrivenEstimator):
         self.name = f"ekf-{self.config.variant}"
         self.rig = rig
         self.frontend = FrontEnd(self.config.frontend, rig)
+        view = laser_view(rig)
+        if not view.in_view:  # the paper's method ties a return to the image point it falls on, in the frame it is measured
+            log.warning("%s: the laser's line is not in the camera's view (%d of its %d ground points in the image): this EKF cannot use "
+                        "its returns, its scale and tilt come from the camera's mount alone",
+                        self.name, view.in_image, view.on_ground)
         m = self.config.motion
         super().__init__(m, has_odometry, t_start_s)
         v0 = np.zeros(6)

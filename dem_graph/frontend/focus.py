@@ -15,6 +15,7 @@ import numpy as np
 from pydantic import Field
 
 from dem_graph.config_types import StrictModel
+from dem_graph.geometry.ground_view import nearest_visible_ground_m
 from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.se3 import invert, transform_points
 
@@ -30,18 +31,6 @@ class FocusConfig(StrictModel):
     min_depth_m: float = Field(1.5, gt=0, description="shortest extent of the focus area along the path, metres")
     max_distance_m: float = Field(15.0, gt=0, description="never look further than this ahead of the body origin, metres")
     nominal_speed_mps: float = Field(1.5, gt=0, description="speed assumed before the estimator knows it, m/s; left at 1.5, a run takes vehicle.speed_mps")
-
-
-def nearest_visible_ground_m(rig: SensorRig) -> float:
-    """Forward distance (body frame) of the flat ground seen by the bottom centre of the image."""
-    cam = rig.camera_model
-    bearing = cam.bearings_from_pixels(np.array([[cam.cx_px, cam.height_px - 1.0]]))[0]
-    d_body = rig.T_body_cam[:3, :3] @ bearing
-    o = rig.T_body_cam[:3, 3]
-    if d_body[2] >= -1e-6:
-        return 0.0
-    lam = -o[2] / d_body[2]
-    return float(o[0] + lam * d_body[0])
 
 
 @dataclass(frozen=True)

@@ -323,6 +323,27 @@ def default_rig() -> SensorRig:
     )
 
 
+def car_rig() -> SensorRig:
+    """A car's pushbroom rig: a 640x480 camera at 16 Hz, 1.4 m up and pitched 2 degrees down, seeing
+    the road from 3.9 m ahead (its vertical field of view 35.5 degrees, as a stereo head's cropped to
+    the road); a 50 Hz, 541-beam laser over 270 degrees on the front bumper, 0.8 m ahead of the
+    camera and 0.33 m above the road, its line meeting the road 1.7 m ahead of it (2.5 m ahead of
+    the body origin): below the camera's view. No odometry, no IMU. The body origin is on the road
+    under the camera."""
+    laser_height_m, laser_ahead_m = 0.33, 1.7
+    return SensorRig(
+        camera=CameraSpec(
+            width_px=640, height_px=480, fx_px=750.0, fy_px=750.0, cx_px=319.5, cy_px=239.5, distortion=(0.0, 0.0, 0.0, 0.0, 0.0),
+            rate_hz=16.0, T_body_cam=camera_mount([0.0, 0.0, 1.4], np.radians(2.0)),
+        ),
+        laser=LaserSpec(
+            T_body_laser=laser_mount([0.8, 0.0, laser_height_m], np.arctan2(laser_height_m, laser_ahead_m)),
+            beams=PlanarBeams(angle_min_rad=-np.radians(135.0), angle_increment_rad=np.radians(0.5), count=541),
+            range_max_m=50.0, range_sigma_m=0.02, rate_hz=50.0,
+        ),
+    )
+
+
 Model = TypeVar("Model", bound=BaseModel)
 
 

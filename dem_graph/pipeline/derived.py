@@ -38,8 +38,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from dem_graph.frontend.focus import FocusConfig, nearest_visible_ground_m
+from dem_graph.frontend.focus import FocusConfig
 from dem_graph.frontend.tracker import TrackerConfig
+from dem_graph.geometry.ground_view import nearest_visible_ground_m
 from dem_graph.geometry.rig import SensorRig, default_rig
 from dem_graph.geometry.se3 import invert, transform_points
 

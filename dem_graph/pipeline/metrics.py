@@ -10,6 +10,7 @@ import numpy as np
 
 from dem_graph.datasets.base import Sequence
 from dem_graph.estimators.base import EstimatorResult
+from dem_graph.estimators.odometry_only import ODOMETRY_BASELINE
 from dem_graph.evaluation.dem_metrics import HeightErrors
 from dem_graph.evaluation.results import MetricsModel, Number
 from dem_graph.evaluation.timing import GraphUpdateTiming, PhaseTiming, frame_timing_summary, graph_update_timing
@@ -21,6 +22,7 @@ from dem_graph.evaluation.trajectory_metrics import (
     pose_nees,
     within_truth_span,
 )
+from dem_graph.geometry.ground_view import laser_view
 from dem_graph.pipeline.live_run import LiveMapMetrics
 from dem_graph.pipeline.run_dem import DemFailure, DemMetrics
 
@@ -97,6 +99,9 @@ class RunMetrics(MetricsModel):
     frames: int | None = None
     elapsed_s: float | None = None  # the whole run, wall clock
     error: str | None = None  # why the run stopped early (its results go up to there)
+    status: str | None = None  # "ok"; "stopped": it ended early (error); "failed": it ran to its end but measured nothing (failure)
+    failure: str | None = None  # why a run that ran is not a result (:func:`tracking_failure`): the trajectory is the motion model's
+    laser_view: str | None = None  # where the laser's line meets the ground against the ground the camera sees (geometry.ground_view)
     time_per_frame: dict[str, PhaseTiming] | None = None  # by phase: total, prediction, tracking, update, map, graph, ...
     graph_update: GraphUpdateTiming | None = None  # the graph estimator: its updates' time by phase (in its own process, when it has one)
     points_per_frame: PointsPerFrame | None = None
@@ -121,6 +126,8 @@ def compute_metrics(sequence: Sequence, res: EstimatorResult, error: str | None 
     against the truth the trajectory's accuracy (each extra trajectory's too) and the poses' NEES."""
     metrics = RunMetrics(estimator=res.name, frames=len(res.frames), elapsed_s=elapsed_s, error=error or None)
     metrics.skipped_messages = sequence.skipped_messages() or None
+    metrics.status = "stopped" if metrics.error else "ok"
+    metrics.laser_view = laser_view(sequence.rig).line()
     if not res.frames:
         return metrics
     phases = sorted({k for f in res.frames for k in f.timing_s})
@@ -132,6 +139,8 @@ def compute_metrics(sequence: Sequence, res: EstimatorResult, error: str | None 
     metrics.map_points = len(res.points)
     metrics.events = dict(sorted(res.counters.items()))
     metrics.tracking = tracking_yield(metrics.events)
+    metrics.failure = tracking_failure(metrics)
+    metrics.status = "stopped" if metrics.error else ("failed" if metrics.failure else "ok")
     gt = sequence.ground_truth
     if gt is not None and len(res.frames) > 1:
         est, covered = within_truth_span(res.trajectory(), gt.trajectory)
@@ -193,14 +202,42 @@ _ADVICE = {
 }
 
 
+FAILED_YIELD_FRACTION = 0.10
+"""Below this fraction of searches matched, the trajectory is the motion model's rather than a
+measurement: the run failed (:func:`tracking_failure`), whatever files it wrote."""
+
+
+def _main_failure(y: TrackingYield) -> tuple[str, float] | None:
+    """The tracker's most frequent failure and its share of the searches; None when none failed."""
+    if not y.failed_fraction:
+        return None
+    return max(y.failed_fraction.items(), key=lambda kv: kv[1])
+
+
+def tracking_failure(m: RunMetrics, threshold: float = FAILED_YIELD_FRACTION) -> str | None:
+    """Why a run that went to its end is not a result, in one line, or None: a tracking estimator
+    (not the odometry baseline) that matched under ``threshold`` of its searches, or searched for no
+    point at all over two frames or more, measured nothing; its trajectory is what the motion model
+    predicted (odometry, the IMU, or a constant velocity), and its map is the scans laid along it."""
+    if m.estimator == ODOMETRY_BASELINE or (m.frames or 0) < 2:
+        return None
+    y = m.tracking
+    if y is None:
+        return "no ground point was ever tracked (none chosen in the images): the trajectory is the motion model's alone"
+    if y.matched_fraction >= threshold:
+        return None
+    return f"tracking failed: {100 * y.matched_fraction:.0f} % of {y.searches} searches matched (under {100 * threshold:.0f} %): the trajectory is the motion model's alone"
+
+
 def yield_advice(y: TrackingYield | None, threshold: float = LOW_YIELD_FRACTION) -> str | None:
     """A warning naming the setting to look at when fewer than ``threshold`` of the searches matched
     (the main reason of the failures picks it); None when the yield is fine or nothing was searched."""
     if y is None or y.searches == 0 or y.matched_fraction >= threshold:
         return None
-    if not y.failed_fraction:
+    main = _main_failure(y)
+    if main is None:
         return f"warning: only {100 * y.matched_fraction:.0f} % of the searches matched (docs/guide/own_robot.md, tuning)"
-    reason, share = max(y.failed_fraction.items(), key=lambda kv: kv[1])
+    reason, share = main
     advice = _ADVICE.get(reason, "docs/guide/own_robot.md, tuning")
     return (
         f"warning: only {100 * y.matched_fraction:.0f} % of the searches matched (under {100 * threshold:.0f} %), most failed as "
@@ -211,6 +248,8 @@ def yield_advice(y: TrackingYield | None, threshold: float = LOW_YIELD_FRACTION)
 def summary_lines(m: RunMetrics) -> list[str]:
     """A run's metrics in a few lines, as ``dem-graph run`` prints them."""
     lines = [f"{m.estimator}: {m.frames or 0} frames in {m.elapsed_s or 0.0:.1f} s"]
+    if m.laser_view is not None:
+        lines.append(m.laser_view)
     if m.time_per_frame is not None and m.points_per_frame is not None:
         t, p = m.time_per_frame["total"], m.points_per_frame
         lines.append(f"time per frame: median {t.median_ms:.1f} ms, p95 {t.p95_ms:.1f} ms; live points median {p.live_median:.0f}, tracked {p.tracked_median:.0f}")
@@ -223,7 +262,7 @@ def summary_lines(m: RunMetrics) -> list[str]:
             f"tracking: {100 * y.matched_fraction:.0f} % of {y.searches} searches matched ({100 * y.outlier_fraction_of_matched:.0f} % of them then rejected as outliers); failed: {failed}"
         )
         advice = yield_advice(y)
-        if advice is not None:
+        if advice is not None and m.failure is None:  # a failed run says it last (:func:`failure_line`)
             lines.append(advice)
     if m.trajectory is not None:
         tr = m.trajectory
@@ -261,4 +300,17 @@ def summary_lines(m: RunMetrics) -> list[str]:
     return lines
 
 
-__all__ = ["LOW_YIELD_FRACTION", "LiveSourceMetrics", "PointsPerFrame", "RunMetrics", "StreamHealth", "compute_metrics", "laser_cells_error_text", "summary_lines", "yield_advice"]
+def failure_line(m: RunMetrics) -> str | None:
+    """A failed run's last line (its failure, the tracker's main reason and the setting to look at),
+    None for any other run."""
+    if m.failure is None:
+        return None
+    line = f"dem-graph: run failed: {m.failure}"
+    main = _main_failure(m.tracking) if m.tracking is not None else None
+    if main is not None:
+        reason, share = main
+        line += f"; most searches failed as {reason.replace('_', ' ')} ({100 * share:.0f} %): {_ADVICE.get(reason, 'see the tuning guide')}"
+    return line + " (the run folder's files were written; docs/guide/own_robot.md, tuning)"
+
+
+__all__ = ["FAILED_YIELD_FRACTION", "LOW_YIELD_FRACTION", "LiveSourceMetrics", "PointsPerFrame", "RunMetrics", "StreamHealth", "compute_metrics", "failure_line", "laser_cells_error_text", "summary_lines", "tracking_failure", "yield_advice"]

@@ -83,6 +83,10 @@ class ScenarioConfig(StrictModel):
     lighting: LightingSpec = Field(default_factory=LightingSpec)
     path: PathSpec = Field(default_factory=PathSpec)
     straight_path: bool = Field(False, description="drive a straight line (analytic tests)")
+    camera_encoding: str = Field(
+        "mono8", pattern="^(mono8|bayer_(rggb|bggr|gbrg|grbg)8)$",
+        description="how a bag written from the log (simulate --bag) carries the images: mono8, or a colour camera's raw Bayer mosaic (bayer_gbrg8, ...) of the grey scene",
+    )
 
     @model_validator(mode="after")
     def _check(self):

@@ -52,7 +52,7 @@ class EstimatorRun:
 
     estimator: str
     run_dir: Path
-    status: str  # "ok"; "stopped": the loop failed part way, the results up to there are kept; "failed"
+    status: str  # "ok"; "stopped": the loop failed part way, the results up to there are kept; "failed": an error, or a run that measured nothing (its tracking failed: metrics.failure)
     error: str | None = None
     metrics: RunMetrics | None = None  # as in its metrics.json (None when it failed)
     trajectory: Trajectory | None = None  # its trajectory.tum
@@ -146,13 +146,16 @@ def _run_one(sequence: Sequence, config: RunConfig, name: str, run_dir: Path, da
     except Exception as exc:  # a bug or a library's own error: the other runs still go on
         log.exception("%s failed", name)
         return EstimatorRun(name, run_dir, "failed", f"{type(exc).__name__}: {one_line(exc)}"), None
-    entry = EstimatorRun(
-        name, run_dir, "stopped" if result.error else "ok", None if result.error is None else " ".join(result.error.split()),
-        result.metrics, result.estimator.trajectory(), result.dem.local_series if result.dem is not None else None,
-    )
+    status, why = "ok", None
+    if result.error:
+        status, why = "stopped", " ".join(result.error.split())
+    elif result.metrics.failure:  # it ran, and measured nothing: not a result, though its files are there
+        status, why = "failed", result.metrics.failure
+        log.error("%s failed: %s", name, why)
+    entry = EstimatorRun(name, run_dir, status, why, result.metrics, result.estimator.trajectory(), result.dem.local_series if result.dem is not None else None)
     dem = None
     rmse = entry.headline["dem_rmse_laser_cells_m"]
-    if result.dem is not None and math.isfinite(rmse):
+    if result.dem is not None and math.isfinite(rmse) and status != "failed":
         dem = BestDem(name, result.dem.dem, result.dem.poses.T_world_body[:, :2, 3].copy(), rmse)
     return entry, dem
 

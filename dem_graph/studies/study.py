@@ -191,6 +191,8 @@ def _run_row(sequence, name: str, seed: int, speed_mps: float, max_points: int |
         return StudyRow(name, seed, speed_mps, cap, nan, nan, nan, nan, nan, nan, f"failed: {one_line(exc)}")
     h = headline(run.metrics)
     status = "ok" if run.error is None else f"stopped: {one_line(run.error)}"
+    if run.error is None and run.metrics.failure:
+        status = f"failed: {run.metrics.failure}"
     tracking = run.metrics.tracking
     return StudyRow(
         name, seed, speed_mps, cap, h["ate_anchored_rmse_m"], h["ate_aligned_rmse_m"], h["drift_percent"],
