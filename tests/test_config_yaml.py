@@ -15,7 +15,6 @@ from dem_graph.cli import main
 from dem_graph.geometry.rig import load_rig
 from dem_graph.pipeline.config import RunConfig, run_config, without_restated_defaults
 from dem_graph.pipeline.config_yaml import config_yaml
-from dem_graph.pipeline.derived import derived_search_half_size_px
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
@@ -69,9 +68,9 @@ def test_on_kitti_a_file_restating_the_defaults_leaves_the_datasets_settings(tmp
     with caplog.at_level("INFO"):
         configured = run_config(sequence, tmp_path / "c.yaml")
     assert configured.model_dump(mode="json") == run_config(sequence).model_dump(mode="json")
-    # derived from KITTI's vehicle.speed_mps and its camera (129 px on sequence 04), not the default's 40
-    assert configured.frontend.tracker.max_search_half_size_px == derived_search_half_size_px(sequence.rig, 12.0, sequence.rig.camera.rate_hz) != 40
-    assert any("motion.initial_speed_from_dataset" in r.getMessage() and "12 values restate a default" in r.getMessage() for r in caplog.records)
+    # KITTI gives no speed: the search cap stays the default's 40 and follows the speed the estimator holds
+    assert configured.frontend.tracker.max_search_half_size_px == 40 and configured.frontend.tracker.search_cap_follows_speed
+    assert any("motion.initial_speed_from_dataset" in r.getMessage() and "10 values restate a default" in r.getMessage() for r in caplog.records)
 
 
 @pytest.mark.shared_data
@@ -122,7 +121,7 @@ def test_the_examples_validate():
     # steadier speed, a near start, and no starting speed read from KITTI's Velodyne
     kitti = _flat(yaml.safe_load((Path(__file__).resolve().parent.parent / "dem_graph" / "datasets" / "settings" / "kitti.yaml").read_text()))
     example = _flat(yaml.safe_load((EXAMPLES / "car_10hz.yaml").read_text()))
-    assert sorted(set(example) - set(kitti)) == ["frontend.focus.nominal_speed_mps"]
+    assert sorted(set(example) - set(kitti)) == ["frontend.focus.nominal_speed_mps", "motion.initial_speed_mps", "vehicle.speed_mps"]  # the example tells the speed
     assert sorted(set(kitti) - set(example)) == ["motion.initial_speed_from_dataset"]
     assert {k for k in kitti.keys() & example.keys() if kitti[k] != example[k]} == {"motion.sigma_linear_acc_mps2"}
     assert example["motion.sigma_linear_acc_mps2"] == 0.5 < kitti["motion.sigma_linear_acc_mps2"]

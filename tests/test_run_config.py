@@ -6,13 +6,11 @@ from __future__ import annotations
 import pytest
 from click.testing import CliRunner
 
-from dem_graph import open_dataset
 from dem_graph.cli import main
 from dem_graph.datasets.memory import InMemorySequence
 from dem_graph.errors import ConfigError
 from dem_graph.io.tum import read_tum
 from dem_graph.pipeline import RunConfig, RunOverrides, run_config, run_dataset, run_estimator
-from dem_graph.pipeline.derived import derived_search_half_size_px
 
 
 class SequenceWithSettings(InMemorySequence):
@@ -92,8 +90,8 @@ def test_the_command_and_the_library_run_the_same_on_kitti(kitti_sample, tmp_pat
     cli_out, lib_out, run = _command_and_library(kitti_sample, tmp_path, flags, overrides)
     assert (cli_out / "trajectory.tum").read_bytes() == (lib_out / "trajectory.tum").read_bytes()
     assert run.config.motion.initial_speed_mps == pytest.approx(12.6, abs=0.3)  # the first two scans' speed, as the command's
-    # derived from datasets/settings/kitti.yaml's vehicle.speed_mps and the camera (129 px: test_kitti.py works it by hand)
-    rig = open_dataset(kitti_sample).rig
-    assert run.config.frontend.tracker.max_search_half_size_px == derived_search_half_size_px(rig, 12.0, rig.camera.rate_hz) != 40
+    # no speed given: the cap is the default's, and the search follows the speed the estimator holds
+    # (frontend.search_cap; test_kitti.py works the formula by hand)
+    assert run.config.frontend.tracker.max_search_half_size_px == 40 and run.config.frontend.tracker.search_cap_follows_speed
     assert run.metrics.points_per_frame.tracked_median > 10
     assert run.metrics.trajectory.ate_rmse_m < 1.0  # 20 m driven

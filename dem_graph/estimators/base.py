@@ -163,6 +163,7 @@ class FrameDrivenEstimator(Estimator):
     frame before it (or before the start time) is an :class:`EventOrderError`."""
 
     _last_frame_t_s: float | None = None  # the latest frame processed
+    _speed_unknown: bool = False  # no speed but a guess: the estimators without odometry measure it from the ground (frontend.ground_motion)
 
     def __init__(self, motion: MotionConfig, has_odometry: bool, t_start_s: float):
         self._motion = FrameMotion(motion, has_odometry, t_start_s)
@@ -203,6 +204,16 @@ class FrameDrivenEstimator(Estimator):
         (m,3), 3x3 covariances (m,3,3) and creation times (m,), and the count to ask from next
         time. Points whose estimate is not known yet are left out."""
         return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), start
+
+    def _speed_unknown_at_start(self, frontend, frame: int | None = None) -> bool:
+        """On the first frame, with no odometry and no speed but a guess that the ground's motion will
+        replace at the next frame (``frontend.ground_motion``): the points seeded now are spread over
+        the whole depth the focus area may take (the speed ``math.inf`` to
+        :meth:`~dem_graph.frontend.focus.FocusArea.for_speed`), not over the guessed speed's (for a car
+        at 12 m/s, the nearest ground, gone within two frames). ``frame``: the frame's number, when its
+        work comes after it was recorded (default: the frame being processed)."""
+        first = (self.frames_done if frame is None else frame) == 0
+        return first and self._speed_unknown and not self._motion.uses_odometry and frontend.measures_ground_motion
 
     @property
     def t_s(self) -> float:

@@ -15,6 +15,7 @@ state), and the accelerometer's mean over the frame updates roll and pitch as gr
 from __future__ import annotations
 
 import logging
+import math
 import time
 from typing import Literal
 
@@ -64,6 +65,10 @@ class EkfSlam(FrameDrivenEstimator):
         self.name = f"ekf-{self.config.variant}"
         self.rig = rig
         self.frontend = FrontEnd(self.config.frontend, rig)
+        self._speed_from_ground = False
+        self._speed_unknown = not self.config.motion.speed_known_at_start  # without odometry: measured from the ground on the first frames (_measure_speed)
+        if self.config.motion.speed_known_at_start:
+            self.frontend.follow_speed(abs(self.config.motion.initial_speed_mps))  # the search cap for the speed it starts at
         view = laser_view(rig)
         if not view.in_view:  # the paper's method ties a return to the image point it falls on, in the frame it is measured
             log.warning("%s: the laser's line is not in the camera's view (%d of its %d ground points in the image): this EKF cannot use "
@@ -101,7 +106,10 @@ class EkfSlam(FrameDrivenEstimator):
         timing["prediction"] = t1 - t0
         image = event.image
         # a frame without texture (the reader marked it) is not searched, loses no point and starts none
+        n_live = self.state.n_points
         n_tracked, t_track, t_update = (0, 0.0, 0.0) if event.textureless else self._track_and_update(image, event.t_s)
+        if not event.textureless and n_live > 0 and n_tracked == 0:
+            self._speed_unknown = True  # lost: the next frame measures the speed from the ground again
         timing["tracking"], timing["update"] = t_track, t_update
         t2 = time.perf_counter()
         self.history.append(event.t_s, self.state.T_world_body)
@@ -132,13 +140,28 @@ class EkfSlam(FrameDrivenEstimator):
             if samples is not None:
                 U, Q = with_rotation(U, Q, R_gyro, np.eye(3) * var_rot)
             self.state.predict_increment(U, Q, dt)
-        elif samples is not None:
-            self.state.predict_constant_velocity_gyro(dt, self._motion.sigma_acc[3], R_gyro, var_rot)
-        elif dt > 0:
-            self.state.predict_constant_velocity(dt, self._motion.sigma_acc)
+        else:
+            if dt > 0 and self._speed_unknown:
+                self._measure_speed(event)
+            if samples is not None:
+                self.state.predict_constant_velocity_gyro(dt, self._motion.sigma_acc[3], R_gyro, var_rot)
+            elif dt > 0:
+                self.state.predict_constant_velocity(dt, self._motion.sigma_acc)
         if samples is not None:
             self.state.propagate_imu_biases(spec.T_body_imu, dt, spec.gyro_bias_random_walk, spec.accel_bias_random_walk)
             self._gravity_update(samples, t_a, event.t_s)
+
+    def _measure_speed(self, event: CameraFrame) -> None:
+        """Without odometry, at the start or after a frame that tracked nothing: the velocity taken from
+        the ground's motion since the last image (the speed held was a guess), and the search cap for
+        that speed."""
+        shift = self.frontend.ground_shift(event.t_s, event.image)
+        if shift is None:
+            return
+        self.state.reset_linear_velocity(*shift.velocity())
+        self.frontend.follow_speed(float(np.linalg.norm(self.state.v_body[3:])))
+        self._speed_unknown = False
+        self._speed_from_ground = True
 
     # --- the IMU ---------------------------------------------------------------------------------
     def on_imu(self, event: ImuSample) -> None:
@@ -245,7 +268,13 @@ class EkfSlam(FrameDrivenEstimator):
         return uv
 
     def _speed_mps(self) -> float | None:
-        return float(np.linalg.norm(self.state.v_body[3:])) if len(self.history) > 2 else None
+        """The speed the focus area and the search cap are made for: the filter's once it has seen
+        two frames or measured the speed from the ground, None before (the focus area's nominal speed;
+        inf on a first frame whose speed the ground will measure: :meth:`_speed_unknown_at_start`)."""
+        if self._speed_unknown_at_start(self.frontend):
+            return math.inf
+        known = len(self.history) > 2 or self._speed_from_ground
+        return float(np.linalg.norm(self.state.v_body[3:])) if known else None
 
     def _add_points(self, image, t_s: float, occupied_uv: np.ndarray) -> None:
         """New laser and camera points, away from the live points' pixels ``occupied_uv``."""

@@ -271,6 +271,17 @@ class EkfState:
         self._symmetrize()
         return True
 
+    def reset_linear_velocity(self, v_lin_mps: np.ndarray, R_mps2: np.ndarray) -> None:
+        """The body's linear velocity set to a measurement ``v_lin_mps`` (3,) with covariance
+        ``R_mps2`` (3x3), what the state held of it forgotten: the ground's motion between two frames
+        (:class:`~dem_graph.frontend.ground_motion.GroundMotion`) where the speed was only a guess
+        (the start without odometry, or tracking lost)."""
+        self._require_batch_mode()
+        self.v_body[3:] = np.asarray(v_lin_mps, dtype=float)
+        self.P[VEL_LIN, :] = 0.0
+        self.P[:, VEL_LIN] = 0.0
+        self.P[VEL_LIN, VEL_LIN] = np.asarray(R_mps2, dtype=float)
+
     # --- observation -------------------------------------------------------------------------
     def observe(self, indices: np.ndarray, camera: PinholeCamera, T_body_cam: np.ndarray):
         """Predicted pixels of points ``indices`` and the Jacobians w.r.t. the pose error (k,2,6) and

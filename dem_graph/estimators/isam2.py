@@ -81,6 +81,9 @@ class Isam2Slam(FrameDrivenEstimator):
         self.rig = rig
         self.frontend = FrontEnd(c.frontend, rig)
         super().__init__(c.motion, has_odometry, t_start_s)
+        self._speed_unknown = not c.motion.speed_known_at_start  # without odometry: measured from the ground on the first frames (_measure_speed)
+        if c.motion.speed_known_at_start:
+            self.frontend.follow_speed(abs(c.motion.initial_speed_mps))  # the search cap for the speed it starts at
         T0 = np.array(T_world_body_initial, dtype=float)
         P0 = np.eye(6) * c.motion.initial_sigma_pose**2
         self._filter = OnlineFilter(c, rig, self.frontend, T0.copy(), P0, self.t_s)
@@ -183,7 +186,10 @@ class Isam2Slam(FrameDrivenEstimator):
         T_pred = filt.predict(U, Q, A)
         t1 = time.perf_counter()
         # a frame without texture (the reader marked it) is not searched: its pose is the prediction
+        n_live = len(self.live)
         m = FrameMatches(np.zeros(0, dtype=int), np.zeros((0, 2))) if event.textureless else filt.track(event.image, event.t_s, T_pred)
+        if not event.textureless and n_live > 0 and len(m.idx) == 0:
+            self._speed_unknown = True  # lost: the next frame measures the speed from the ground again
         t2 = time.perf_counter()
         m, T_pred = self._take_results_before_update(m, T_pred, U, timing)
         t2g = time.perf_counter()
@@ -245,6 +251,8 @@ class Isam2Slam(FrameDrivenEstimator):
         if observations is not None:
             tg = time.perf_counter()
             # no point starts in a frame without texture; its scans wait for the next frame
+            if self._speed_unknown_at_start(self.frontend, frame):
+                filt.seed_for_any_speed()
             new = [] if event.textureless else filt.new_points(event.image, event.t_s, self._scans.take_until(event.t_s), live_uv)
             tn = time.perf_counter()
             landmarks, uv, sigma_px, point_steps = observations
@@ -292,9 +300,30 @@ class Isam2Slam(FrameDrivenEstimator):
         the odometry's, or (without) constant velocity from the last two frames' poses; across a
         camera gap, refined by the images on either side (:class:`~dem_graph.frontend.gap_bridge.GapBridge`)."""
         dt, increment = self._motion.advance(event.t_s)
-        U, Q = increment if increment is not None else constant_velocity_increment(self._filter.v_body, dt, self._motion.sigma_acc)
+        if increment is not None:
+            U, Q = increment
+        else:
+            speed_var = self._measure_speed(event) if dt > 0 and self._speed_unknown else None
+            U, Q = constant_velocity_increment(self._filter.v_body, dt, self._motion.sigma_acc)
+            if speed_var is not None:  # the measured speed's uncertainty over the frame, on the translation
+                Q = Q.copy()
+                Q[3:, 3:] += np.diag(speed_var) * dt**2
         U, Q = self.frontend.gap_bridge.refine(event.t_s, event.image, event.textureless, U, Q)
         return dt, U, Q
+
+    def _measure_speed(self, event: CameraFrame) -> np.ndarray | None:
+        """Without odometry, at the start or after a frame that tracked nothing: the filter's velocity
+        taken from the ground's motion since the last image (:meth:`FrontEnd.ground_shift`; the speed
+        held was a guess), and the search cap for that speed; returns the measurement's variances
+        (3,), m^2/s^2, or None when nothing was measured."""
+        shift = self.frontend.ground_shift(event.t_s, event.image)
+        if shift is None:
+            return None
+        v_measured, R = shift.velocity()
+        self._filter.v_body[3:] = v_measured
+        self.frontend.follow_speed(float(np.linalg.norm(v_measured)))
+        self._speed_unknown = False
+        return np.diag(R).copy()
 
     def _gyro_rotation(self, samples, t_a_s: float, t_b_s: float, U: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The frame's motion with its rotation measured by the gyroscope (the graph's latest bias

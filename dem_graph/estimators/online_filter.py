@@ -13,6 +13,7 @@ client moves its pose and points when the smoother's results come back.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,6 +94,11 @@ class OnlineFilter:
         A = adjoint(invert(U)) if A is None else A
         self.P_loc = A @ self.P_loc @ A.T + Q
         return self.T @ U
+
+    def seed_for_any_speed(self) -> None:
+        """The next points are seeded over the focus area's whole depth (the speed unknown until the
+        next frame measures it: :meth:`Isam2Slam._speed_unknown_at_start`)."""
+        self._speed_mps = math.inf
 
     def restart_map(self) -> None:
         """Every live point is gone (a camera gap made them stale): the points seeded next are placed

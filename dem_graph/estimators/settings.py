@@ -22,7 +22,16 @@ class MotionConfig(StrictModel):
     )
     sigma_angular_acc_radps2: float = Field(1.5, gt=0, description="constant-velocity model: angular acceleration noise, rad/s^2/sqrt(Hz)")
     sigma_linear_acc_mps2: float = Field(1.5, gt=0, description="constant-velocity model: linear acceleration noise, m/s^2/sqrt(Hz)")
-    initial_speed_mps: float = Field(0.0, description="constant-velocity model: initial forward speed, m/s")
+    initial_speed_mps: float = Field(
+        0.0,
+        description="constant-velocity model: initial forward speed, m/s; 0: not known, measured from the ground on the second frame "
+        "(frontend.ground_motion), which any other value (given, or the dataset's own) is taken as instead",
+    )
+
+    @property
+    def speed_known_at_start(self) -> bool:
+        """Whether the run starts at a speed it was given or the dataset measured (not 0, the unknown)."""
+        return self.initial_speed_mps != 0.0
     initial_sigma_speed_mps: float = Field(1.0, gt=0, description="constant-velocity model: initial speed uncertainty, m/s")
     initial_speed_from_dataset: bool = Field(
         False, description="constant-velocity model: start at the dataset's own estimate of the speed when it has one (KITTI: from its first two lidar scans) instead of initial_speed_mps"

@@ -42,8 +42,10 @@ class FocusArea:
 
     @classmethod
     def for_speed(cls, config: FocusConfig, rig: SensorRig, speed_mps: float | None) -> FocusArea:
-        v = config.nominal_speed_mps if speed_mps is None or not np.isfinite(speed_mps) else abs(float(speed_mps))
         near = nearest_visible_ground_m(rig) + config.near_margin_m
+        if speed_mps == np.inf:  # the speed not known yet, about to be measured: the whole depth the area may take
+            return cls(near, max(config.max_distance_m, near + config.min_depth_m), config.corridor_width_m / 2.0, config.cell_size_m)
+        v = config.nominal_speed_mps if speed_mps is None or not np.isfinite(speed_mps) else abs(float(speed_mps))
         stopping = config.front_offset_m + v * config.reaction_time_s + v * v / (2.0 * config.braking_decel_mps2) + config.margin_m
         far = min(max(near + config.min_depth_m, stopping), config.max_distance_m)
         return cls(near, far, config.corridor_width_m / 2.0, config.cell_size_m)

@@ -15,6 +15,7 @@ search, its 2x2 innovation covariance).
 
 from __future__ import annotations
 
+import logging
 from collections import Counter
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -26,11 +27,15 @@ from pydantic import Field
 from dem_graph.config_types import StrictModel
 from dem_graph.frontend.focus import FocusArea, FocusConfig
 from dem_graph.frontend.gap_bridge import GapBridge, GapBridgeConfig
+from dem_graph.frontend.ground_motion import GroundMotion, GroundMotionConfig, GroundShift
 from dem_graph.frontend.patch_store import PatchStore
+from dem_graph.frontend.search_cap import cap_for_speed
 from dem_graph.frontend.tracker import Patch, PatchTracker, TrackBatch, TrackerConfig, TrackResult, TrackStatus
 from dem_graph.frontend.warp_kernel import ground_homographies
 from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.se3 import invert, transform_points
+
+log = logging.getLogger(__name__)
 
 
 class PointKind(IntEnum):
@@ -47,6 +52,7 @@ class FrontendConfig(StrictModel):
     tracker: TrackerConfig = Field(default_factory=TrackerConfig)
     focus: FocusConfig = Field(default_factory=FocusConfig)
     gap_bridge: GapBridgeConfig = Field(default_factory=GapBridgeConfig, description="the motion across a camera gap, refined by the images on either side")
+    ground_motion: GroundMotionConfig = Field(default_factory=GroundMotionConfig, description="without odometry, the speed at the start measured from the ground ahead")
     max_points: int = Field(140, ge=1, description="cap n on live points")
     max_laser_points: int = Field(100, ge=0, description="live laser points at most (the rest of the cap is for camera points)")
     laser_points_per_scan: int = Field(30, ge=0, description="returns taken from one scan at most")
@@ -167,9 +173,12 @@ class FrontEnd:
     last_view: TrackedView | None = None  # the latest frame's searches, when recorded
     _next_id: int = 0
     _gap_s: tuple[float, float] | None = None  # the camera gap the current frame ends, (start, end) seconds
+    _last_image: tuple[float, np.ndarray] | None = None  # the last frame with texture and its time (the ground's motion is measured from it)
+    _ground: GroundMotion | None = None  # made when first asked for
 
     def __post_init__(self):
-        self.tracker = PatchTracker(self.config.tracker)
+        self.tracker = PatchTracker(self.config.tracker.model_copy())  # its own: the search cap follows the speed (follow_speed)
+        self._base_cap_px = self.config.tracker.max_search_half_size_px
         tc = self.config.tracker
         self.patches = PatchStore(2 * (tc.patch_half_size_px + tc.warp_margin_px) + 1)
         self.camera = self.rig.camera_model
@@ -195,8 +204,54 @@ class FrontEnd:
         return missed
 
     def end_frame(self, t_s: float, image, textureless: bool) -> None:
-        """The frame at ``t_s`` is done: the next frame's gap bridge starts from it."""
+        """The frame at ``t_s`` is done: the next frame's gap bridge and ground motion start from it."""
         self.gap_bridge.remember(t_s, image, textureless)
+        if not textureless:
+            self._last_image = (float(t_s), image)
+
+    # --- the speed ---------------------------------------------------------------------------
+    def ground_shift(self, t_s: float, image) -> GroundShift | None:
+        """The body's translation over the ground from the last frame with texture to ``image`` (at ``t_s``)
+        (:class:`~dem_graph.frontend.ground_motion.GroundMotion`), None when it is off, there is no
+        earlier frame, or the views refuse it (counted, and said once at info level)."""
+        cfg = self.config.ground_motion
+        if not cfg.enabled or self._last_image is None:
+            return None
+        if self._ground is None:
+            self._ground = GroundMotion(cfg, self.rig)
+            if self._ground.problem:
+                log.warning("the speed cannot be measured from the ground: %s; the motion model starts at motion.initial_speed_mps", self._ground.problem)
+        if self._ground.problem:
+            return None
+        t_before_s, before = self._last_image
+        if not t_s > t_before_s:
+            return None
+        shift = self._ground.shift(self._ground.top_view(before), self._ground.top_view(image), t_s - t_before_s)
+        if isinstance(shift, str):
+            self.counters["ground_motion_refused"] += 1
+            log.info("the ground's motion not measured: %s", shift)
+            return None
+        self.counters["ground_motion_measured"] += 1
+        return shift
+
+    @property
+    def measures_ground_motion(self) -> bool:
+        """Whether :meth:`ground_shift` can measure anything (it is on, and the camera sees the ground)."""
+        if not self.config.ground_motion.enabled:
+            return False
+        if self._ground is None:
+            self._ground = GroundMotion(self.config.ground_motion, self.rig)
+        return self._ground.problem is None
+
+    def follow_speed(self, speed_mps: float | None) -> None:
+        """Search with the cap the estimated ``speed_mps`` calls for (:func:`~dem_graph.frontend.search_cap.cap_for_speed`)
+        when ``tracker.search_cap_follows_speed``; never below the cap configured."""
+        if speed_mps is None or not self.config.tracker.search_cap_follows_speed:
+            return
+        cap = cap_for_speed(self.rig, self._base_cap_px, float(speed_mps))
+        if cap != self.tracker.config.max_search_half_size_px:
+            self.counters["search_cap_changes"] += 1
+            self.tracker.config.max_search_half_size_px = cap
 
     # --- tracking ----------------------------------------------------------------------------
     def template_warps(self, point_ids, X_world: np.ndarray, T_world_cam: np.ndarray, half_m: float = 0.15) -> np.ndarray | None:
@@ -461,7 +516,9 @@ class FrontEnd:
         pose at its time is only a guess (interpolated across frames that did not come, or predicted
         at frames without texture), centimetres off the path (a degree of pitch is 5 cm at 3 m), while
         a laser point claims millimetres; tracked, such points would pull the pose after the gap off
-        by their error (``scan_in_camera_gap`` counts them)."""
+        by their error (``scan_in_camera_gap`` counts them). The next frame's search cap follows
+        ``speed_mps`` (:meth:`follow_speed`)."""
+        self.follow_speed(speed_mps)
         focus = self.focus_area(speed_mps)
         T_body_world = invert(T_world_body)
         new: list[NewPoint] = []

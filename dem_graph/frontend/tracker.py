@@ -74,6 +74,11 @@ class TrackerConfig(StrictModel):
         description="a search region with a larger half size on either axis is refused, pixels; left at 40 (1.5 m/s at 25 Hz), a run derives it "
         "from vehicle.speed_mps and the camera's rate",
     )
+    search_cap_follows_speed: bool = Field(
+        True,
+        description="raise max_search_half_size_px while the estimated speed asks for a quarter more than it (frontend.search_cap), never below it; "
+        "a run turns it off where max_search_half_size_px is given",
+    )
     refuse_peak_outside_gate: bool = Field(
         False,
         description="refuse a match when a candidate just outside the gate scores higher than the best inside (the peak is outside the gate); "

@@ -32,55 +32,24 @@ the default counts as not given, as in the rest of the layering (:mod:`dem_graph
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from dem_graph.frontend.focus import FocusConfig
-from dem_graph.frontend.tracker import TrackerConfig
-from dem_graph.geometry.ground_view import nearest_visible_ground_m
-from dem_graph.geometry.rig import SensorRig, default_rig
-from dem_graph.geometry.se3 import invert, transform_points
+from dem_graph.frontend.search_cap import (
+    DEFAULT_SEARCH_HALF_SIZE_PX,
+    REFERENCE_RATE_HZ,
+    REFERENCE_SPEED_MPS,
+    derived_search_half_size_px,
+    nearest_ground_motion_px,
+    step_per_frame_m,
+)
+from dem_graph.geometry.rig import SensorRig
 
 if TYPE_CHECKING:
     from dem_graph.pipeline.config import RunConfig
 
-REFERENCE_SPEED_MPS = 1.5
-"""The speed the defaults were set for, m/s (the paper's robot)."""
-REFERENCE_RATE_HZ = 25.0
-"""The camera rate the defaults were set for, Hz (the paper's camera)."""
-DEFAULT_SEARCH_HALF_SIZE_PX: int = TrackerConfig.model_fields["max_search_half_size_px"].default
 DEFAULT_NOMINAL_SPEED_MPS: float = FocusConfig.model_fields["nominal_speed_mps"].default
-
-
-def step_per_frame_m(speed_mps: float, rate_hz: float) -> float:
-    """The distance driven between two camera frames, metres."""
-    return speed_mps / rate_hz
-
-
-def nearest_ground_motion_px(rig: SensorRig, step_m: float) -> float:
-    """How far (pixels) the flat ground straight ahead at the nearest distance the camera sees moves
-    in the image when the body drives ``step_m`` forward; nan when the camera sees no ground."""
-    x_m = nearest_visible_ground_m(rig)
-    if not x_m > 0.0:
-        return math.nan
-    ground_body = np.array([[x_m, 0.0, 0.0], [x_m - step_m, 0.0, 0.0]])  # the point, before and after the step
-    uv_px, in_front = rig.camera_model.project(transform_points(invert(rig.T_body_cam), ground_body))
-    if not in_front.all():
-        return math.nan
-    return float(np.linalg.norm(uv_px[1] - uv_px[0]))
-
-
-def derived_search_half_size_px(rig: SensorRig, speed_mps: float, rate_hz: float) -> int:
-    """The search cap for ``rig`` at ``speed_mps`` with a camera at ``rate_hz`` (the module's
-    formula); the default when the camera sees no ground ahead."""
-    motion_px = nearest_ground_motion_px(rig, step_per_frame_m(speed_mps, rate_hz))
-    reference_px = nearest_ground_motion_px(default_rig(), step_per_frame_m(REFERENCE_SPEED_MPS, REFERENCE_RATE_HZ))
-    if not math.isfinite(motion_px):
-        return DEFAULT_SEARCH_HALF_SIZE_PX
-    return max(DEFAULT_SEARCH_HALF_SIZE_PX, round(DEFAULT_SEARCH_HALF_SIZE_PX * motion_px / reference_px))
 
 
 @dataclass(frozen=True)
@@ -116,6 +85,7 @@ def derive_from_vehicle(config: RunConfig, rig: SensorRig) -> Derivation:
         derived["frontend.tracker.max_search_half_size_px"] = tracker.max_search_half_size_px
     else:
         given["frontend.tracker.max_search_half_size_px"] = tracker.max_search_half_size_px
+        tracker.search_cap_follows_speed = False  # a cap given is the cap searched with
     if focus.nominal_speed_mps == DEFAULT_NOMINAL_SPEED_MPS:
         focus.nominal_speed_mps = speed_mps
         derived["frontend.focus.nominal_speed_mps"] = focus.nominal_speed_mps

@@ -26,6 +26,7 @@ from dem_graph.errors import DemGraphError, one_line
 from dem_graph.estimators.base import Estimator
 from dem_graph.pipeline.checkpoint import RunCheckpoint, StopRequest, stop_at_event_boundaries
 from dem_graph.pipeline.config import RunConfig, RunOverrides, run_config
+from dem_graph.pipeline.derived import DEFAULT_NOMINAL_SPEED_MPS
 from dem_graph.pipeline.live import LivePipeline
 from dem_graph.pipeline.live import make_estimator as make_estimator_for
 from dem_graph.pipeline.live_run import LiveRun
@@ -103,7 +104,8 @@ def feed(
 
 def with_dataset_speed(sequence: Sequence, config: RunConfig) -> RunConfig:
     """``config``, its starting speed replaced by the dataset's own estimate (``initial_speed_mps``)
-    when ``motion.initial_speed_from_dataset`` asks for it and the dataset has one."""
+    when ``motion.initial_speed_from_dataset`` asks for it and the dataset has one (and the focus
+    area's speed before the estimator has measured one, where it is left at its default)."""
     if not config.motion.initial_speed_from_dataset or config.motion.uses_odometry(sequence.has_odometry):
         return config
     speed = sequence.initial_speed_mps
@@ -112,6 +114,8 @@ def with_dataset_speed(sequence: Sequence, config: RunConfig) -> RunConfig:
         return config
     config = config.model_copy(deep=True)
     config.motion.initial_speed_mps = float(speed)
+    if config.frontend.focus.nominal_speed_mps == DEFAULT_NOMINAL_SPEED_MPS:  # the focus area's first frames, as vehicle.speed_mps would set it
+        config.frontend.focus.nominal_speed_mps = abs(float(speed))
     return config
 
 
