@@ -114,7 +114,7 @@ def with_dataset_speed(sequence: Sequence, config: RunConfig) -> RunConfig:
         return config
     config = config.model_copy(deep=True)
     config.motion.initial_speed_mps = float(speed)
-    if config.frontend.focus.nominal_speed_mps == DEFAULT_NOMINAL_SPEED_MPS:  # the focus area's first frames, as vehicle.speed_mps would set it
+    if config.frontend.focus.nominal_speed_mps == DEFAULT_NOMINAL_SPEED_MPS and abs(float(speed)) > 0:  # the focus area's first frames, as vehicle.speed_mps would set it
         config.frontend.focus.nominal_speed_mps = abs(float(speed))
     return config
 
