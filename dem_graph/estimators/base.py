@@ -205,6 +205,32 @@ class FrameDrivenEstimator(Estimator):
         time. Points whose estimate is not known yet are left out."""
         return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), start
 
+    # --- the speed without odometry (frontend.ground_motion) ----------------------------------
+    def _start_speed(self, motion: MotionConfig, frontend) -> None:
+        """The speed at the start: a guess the ground's motion replaces (``initial_speed_mps`` 0), or
+        the speed given or measured by the dataset, the search cap then set for it."""
+        self._speed_unknown = not motion.speed_known_at_start
+        if motion.speed_known_at_start:
+            frontend.follow_speed(abs(motion.initial_speed_mps))
+
+    def _note_tracking(self, textureless: bool, n_live: int, n_tracked: int) -> None:
+        """A frame that had live points and tracked none lost the track: the next frame measures the
+        speed from the ground again."""
+        if not textureless and n_live > 0 and n_tracked == 0:
+            self._speed_unknown = True
+
+    def _ground_velocity(self, frontend, event: CameraFrame) -> tuple[np.ndarray, np.ndarray] | None:
+        """The body's linear velocity (3,) m/s and its covariance (3x3) from the ground's motion
+        since the last image (:meth:`FrontEnd.ground_shift`), the search cap set for that speed and
+        the speed known from then on; None when nothing was measured."""
+        shift = frontend.ground_shift(event.t_s, event.image)
+        if shift is None:
+            return None
+        v, R = shift.velocity()
+        frontend.follow_speed(float(np.linalg.norm(v)))
+        self._speed_unknown = False
+        return v, R
+
     def _speed_unknown_at_start(self, frontend, frame: int | None = None) -> bool:
         """On the first frame, with no odometry and no speed but a guess that the ground's motion will
         replace at the next frame (``frontend.ground_motion``): the points seeded now are spread over

@@ -66,9 +66,7 @@ class EkfSlam(FrameDrivenEstimator):
         self.rig = rig
         self.frontend = FrontEnd(self.config.frontend, rig)
         self._speed_from_ground = False
-        self._speed_unknown = not self.config.motion.speed_known_at_start  # without odometry: measured from the ground on the first frames (_measure_speed)
-        if self.config.motion.speed_known_at_start:
-            self.frontend.follow_speed(abs(self.config.motion.initial_speed_mps))  # the search cap for the speed it starts at
+        self._start_speed(self.config.motion, self.frontend)  # without odometry: measured from the ground on the first frames (_measure_speed)
         view = laser_view(rig)
         if not view.in_view:  # the paper's method ties a return to the image point it falls on, in the frame it is measured
             log.warning("%s: the laser's line is not in the camera's view (%d of its %d ground points in the image): this EKF cannot use "
@@ -108,8 +106,7 @@ class EkfSlam(FrameDrivenEstimator):
         # a frame without texture (the reader marked it) is not searched, loses no point and starts none
         n_live = self.state.n_points
         n_tracked, t_track, t_update = (0, 0.0, 0.0) if event.textureless else self._track_and_update(image, event.t_s)
-        if not event.textureless and n_live > 0 and n_tracked == 0:
-            self._speed_unknown = True  # lost: the next frame measures the speed from the ground again
+        self._note_tracking(event.textureless, n_live, n_tracked)
         timing["tracking"], timing["update"] = t_track, t_update
         t2 = time.perf_counter()
         self.history.append(event.t_s, self.state.T_world_body)
@@ -155,13 +152,10 @@ class EkfSlam(FrameDrivenEstimator):
         """Without odometry, at the start or after a frame that tracked nothing: the velocity taken from
         the ground's motion since the last image (the speed held was a guess), and the search cap for
         that speed."""
-        shift = self.frontend.ground_shift(event.t_s, event.image)
-        if shift is None:
-            return
-        self.state.reset_linear_velocity(*shift.velocity())
-        self.frontend.follow_speed(float(np.linalg.norm(self.state.v_body[3:])))
-        self._speed_unknown = False
-        self._speed_from_ground = True
+        measured = self._ground_velocity(self.frontend, event)
+        if measured is not None:
+            self.state.reset_linear_velocity(*measured)
+            self._speed_from_ground = True
 
     # --- the IMU ---------------------------------------------------------------------------------
     def on_imu(self, event: ImuSample) -> None:

@@ -44,6 +44,7 @@ and keeps the points that left (:class:`~dem_graph.estimators.point_archive.Poin
 from __future__ import annotations
 
 import logging
+import math
 import time
 
 import numpy as np
@@ -81,9 +82,7 @@ class Isam2Slam(FrameDrivenEstimator):
         self.rig = rig
         self.frontend = FrontEnd(c.frontend, rig)
         super().__init__(c.motion, has_odometry, t_start_s)
-        self._speed_unknown = not c.motion.speed_known_at_start  # without odometry: measured from the ground on the first frames (_measure_speed)
-        if c.motion.speed_known_at_start:
-            self.frontend.follow_speed(abs(c.motion.initial_speed_mps))  # the search cap for the speed it starts at
+        self._start_speed(c.motion, self.frontend)  # without odometry: measured from the ground on the first frames (_measure_speed)
         T0 = np.array(T_world_body_initial, dtype=float)
         P0 = np.eye(6) * c.motion.initial_sigma_pose**2
         self._filter = OnlineFilter(c, rig, self.frontend, T0.copy(), P0, self.t_s)
@@ -188,8 +187,7 @@ class Isam2Slam(FrameDrivenEstimator):
         # a frame without texture (the reader marked it) is not searched: its pose is the prediction
         n_live = len(self.live)
         m = FrameMatches(np.zeros(0, dtype=int), np.zeros((0, 2))) if event.textureless else filt.track(event.image, event.t_s, T_pred)
-        if not event.textureless and n_live > 0 and len(m.idx) == 0:
-            self._speed_unknown = True  # lost: the next frame measures the speed from the ground again
+        self._note_tracking(event.textureless, n_live, len(m.idx))
         t2 = time.perf_counter()
         m, T_pred = self._take_results_before_update(m, T_pred, U, timing)
         t2g = time.perf_counter()
@@ -251,9 +249,8 @@ class Isam2Slam(FrameDrivenEstimator):
         if observations is not None:
             tg = time.perf_counter()
             # no point starts in a frame without texture; its scans wait for the next frame
-            if self._speed_unknown_at_start(self.frontend, frame):
-                filt.seed_for_any_speed()
-            new = [] if event.textureless else filt.new_points(event.image, event.t_s, self._scans.take_until(event.t_s), live_uv)
+            any_speed = self._speed_unknown_at_start(self.frontend, frame)  # seeded over the focus area's whole depth
+            new = [] if event.textureless else filt.new_points(event.image, event.t_s, self._scans.take_until(event.t_s), live_uv, math.inf if any_speed else None)
             tn = time.perf_counter()
             landmarks, uv, sigma_px, point_steps = observations
             self._send_keyframe(event.t_s, (landmarks, uv, sigma_px), new, point_steps, frame)
@@ -303,27 +300,23 @@ class Isam2Slam(FrameDrivenEstimator):
         if increment is not None:
             U, Q = increment
         else:
-            speed_var = self._measure_speed(event) if dt > 0 and self._speed_unknown else None
+            R_speed = self._measure_speed(event) if dt > 0 and self._speed_unknown else None
             U, Q = constant_velocity_increment(self._filter.v_body, dt, self._motion.sigma_acc)
-            if speed_var is not None:  # the measured speed's uncertainty over the frame, on the translation
+            if R_speed is not None:  # the measured speed's uncertainty over the frame, on the translation
                 Q = Q.copy()
-                Q[3:, 3:] += np.diag(speed_var) * dt**2
+                Q[3:, 3:] += R_speed * dt**2
         U, Q = self.frontend.gap_bridge.refine(event.t_s, event.image, event.textureless, U, Q)
         return dt, U, Q
 
     def _measure_speed(self, event: CameraFrame) -> np.ndarray | None:
         """Without odometry, at the start or after a frame that tracked nothing: the filter's velocity
-        taken from the ground's motion since the last image (:meth:`FrontEnd.ground_shift`; the speed
-        held was a guess), and the search cap for that speed; returns the measurement's variances
-        (3,), m^2/s^2, or None when nothing was measured."""
-        shift = self.frontend.ground_shift(event.t_s, event.image)
-        if shift is None:
+        taken from the ground's motion since the last image (the speed held was a guess); returns the
+        measurement's covariance (3x3), m^2/s^2, or None when nothing was measured."""
+        measured = self._ground_velocity(self.frontend, event)
+        if measured is None:
             return None
-        v_measured, R = shift.velocity()
-        self._filter.v_body[3:] = v_measured
-        self.frontend.follow_speed(float(np.linalg.norm(v_measured)))
-        self._speed_unknown = False
-        return np.diag(R).copy()
+        self._filter.v_body[3:], R = measured
+        return R
 
     def _gyro_rotation(self, samples, t_a_s: float, t_b_s: float, U: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The frame's motion with its rotation measured by the gyroscope (the graph's latest bias

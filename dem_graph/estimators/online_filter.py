@@ -13,7 +13,6 @@ client moves its pose and points when the smoother's results come back.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -94,11 +93,6 @@ class OnlineFilter:
         A = adjoint(invert(U)) if A is None else A
         self.P_loc = A @ self.P_loc @ A.T + Q
         return self.T @ U
-
-    def seed_for_any_speed(self) -> None:
-        """The next points are seeded over the focus area's whole depth (the speed unknown until the
-        next frame measures it: :meth:`Isam2Slam._speed_unknown_at_start`)."""
-        self._speed_mps = math.inf
 
     def restart_map(self) -> None:
         """Every live point is gone (a camera gap made them stale): the points seeded next are placed
@@ -192,9 +186,12 @@ class OnlineFilter:
         """The frame's pose joins the recent poses (the spline that places the next scans)."""
         self.history.append(t_s, self.T)
 
-    def new_points(self, image, t_s: float, scans: list, live_uv: np.ndarray) -> list[NewPoint]:
-        """The front end's new points (laser ``scans`` and flat-ground seeds) away from the live points' pixels ``live_uv``."""
-        return self.frontend.new_points(image, t_s, self.T, scans, self.history, self.live.X, live_uv, self._speed_mps)
+    def new_points(self, image, t_s: float, scans: list, live_uv: np.ndarray, speed_mps: float | None = None) -> list[NewPoint]:
+        """The front end's new points (laser ``scans`` and flat-ground seeds) away from the live points'
+        pixels ``live_uv``, for the speed ``speed_mps`` (default: the filter's; ``math.inf``: the
+        speed about to be measured, :meth:`Isam2Slam._speed_unknown_at_start`)."""
+        speed = self._speed_mps if speed_mps is None else speed_mps
+        return self.frontend.new_points(image, t_s, self.T, scans, self.history, self.live.X, live_uv, speed)
 
     # --- the graph's results -----------------------------------------------------------------
     def correct(self, correction: np.ndarray, C: np.ndarray) -> None:

@@ -27,11 +27,6 @@ class MotionConfig(StrictModel):
         description="constant-velocity model: initial forward speed, m/s; 0: not known, measured from the ground on the second frame "
         "(frontend.ground_motion), which any other value (given, or the dataset's own) is taken as instead",
     )
-
-    @property
-    def speed_known_at_start(self) -> bool:
-        """Whether the run starts at a speed it was given or the dataset measured (not 0, the unknown)."""
-        return self.initial_speed_mps != 0.0
     initial_sigma_speed_mps: float = Field(1.0, gt=0, description="constant-velocity model: initial speed uncertainty, m/s")
     initial_speed_from_dataset: bool = Field(
         False, description="constant-velocity model: start at the dataset's own estimate of the speed when it has one (KITTI: from its first two lidar scans) instead of initial_speed_mps"
@@ -39,6 +34,11 @@ class MotionConfig(StrictModel):
     wait_for_odometry: bool = Field(True, description="hold a frame until the odometry covering its time arrives (instead of extrapolating)")
     initial_sigma_pose: float = Field(1e-4, gt=0, description="initial pose uncertainty (radians and metres); the estimate is anchored at the initial pose")
     use_imu: bool = Field(True, description="use the dataset's IMU when it has one (the rig's imu section); false (--no-imu): ignore its samples")
+
+    @property
+    def speed_known_at_start(self) -> bool:
+        """Whether the run starts at a speed it was given or the dataset measured (not 0, the unknown)."""
+        return self.initial_speed_mps != 0.0
 
     def uses_odometry(self, has_odometry: bool) -> bool:
         return self.model == "odometry" or (self.model == "auto" and has_odometry)

@@ -29,7 +29,7 @@ from dem_graph.frontend.focus import FocusArea, FocusConfig
 from dem_graph.frontend.gap_bridge import GapBridge, GapBridgeConfig
 from dem_graph.frontend.ground_motion import GroundMotion, GroundMotionConfig, GroundShift
 from dem_graph.frontend.patch_store import PatchStore
-from dem_graph.frontend.search_cap import cap_for_speed
+from dem_graph.frontend.search_cap import GroundMotionPx
 from dem_graph.frontend.tracker import Patch, PatchTracker, TrackBatch, TrackerConfig, TrackResult, TrackStatus
 from dem_graph.frontend.warp_kernel import ground_homographies
 from dem_graph.geometry.rig import SensorRig
@@ -179,6 +179,7 @@ class FrontEnd:
     def __post_init__(self):
         self.tracker = PatchTracker(self.config.tracker.model_copy())  # its own: the search cap follows the speed (follow_speed)
         self._base_cap_px = self.config.tracker.max_search_half_size_px
+        self._cap_formula = GroundMotionPx(self.rig)  # the rig's part of the search cap, for follow_speed each frame
         tc = self.config.tracker
         self.patches = PatchStore(2 * (tc.patch_half_size_px + tc.warp_margin_px) + 1)
         self.camera = self.rig.camera_model
@@ -210,23 +211,28 @@ class FrontEnd:
             self._last_image = (float(t_s), image)
 
     # --- the speed ---------------------------------------------------------------------------
+    def _ground_motion(self) -> GroundMotion | None:
+        """The top view of the ground (made at the first call, a warning if it cannot be), None when
+        ``ground_motion`` is off or the camera sees no ground to make it from."""
+        if not self.config.ground_motion.enabled:
+            return None
+        if self._ground is None:
+            self._ground = GroundMotion(self.config.ground_motion, self.rig)
+            if self._ground.problem:
+                log.warning("the speed cannot be measured from the ground: %s; the motion model starts at motion.initial_speed_mps", self._ground.problem)
+        return None if self._ground.problem else self._ground
+
     def ground_shift(self, t_s: float, image) -> GroundShift | None:
         """The body's translation over the ground from the last frame with texture to ``image`` (at ``t_s``)
         (:class:`~dem_graph.frontend.ground_motion.GroundMotion`), None when it is off, there is no
-        earlier frame, or the views refuse it (counted, and said once at info level)."""
-        cfg = self.config.ground_motion
-        if not cfg.enabled or self._last_image is None:
-            return None
-        if self._ground is None:
-            self._ground = GroundMotion(cfg, self.rig)
-            if self._ground.problem:
-                log.warning("the speed cannot be measured from the ground: %s; the motion model starts at motion.initial_speed_mps", self._ground.problem)
-        if self._ground.problem:
+        earlier frame, or the views refuse it (counted, and said at info level)."""
+        ground = self._ground_motion()
+        if ground is None or self._last_image is None:
             return None
         t_before_s, before = self._last_image
         if not t_s > t_before_s:
             return None
-        shift = self._ground.shift(self._ground.top_view(before), self._ground.top_view(image), t_s - t_before_s)
+        shift = ground.shift(ground.top_view(before), ground.top_view(image), t_s - t_before_s)
         if isinstance(shift, str):
             self.counters["ground_motion_refused"] += 1
             log.info("the ground's motion not measured: %s", shift)
@@ -237,18 +243,14 @@ class FrontEnd:
     @property
     def measures_ground_motion(self) -> bool:
         """Whether :meth:`ground_shift` can measure anything (it is on, and the camera sees the ground)."""
-        if not self.config.ground_motion.enabled:
-            return False
-        if self._ground is None:
-            self._ground = GroundMotion(self.config.ground_motion, self.rig)
-        return self._ground.problem is None
+        return self._ground_motion() is not None
 
     def follow_speed(self, speed_mps: float | None) -> None:
-        """Search with the cap the estimated ``speed_mps`` calls for (:func:`~dem_graph.frontend.search_cap.cap_for_speed`)
+        """Search with the cap the estimated ``speed_mps`` calls for (:meth:`~dem_graph.frontend.search_cap.GroundMotionPx.cap_for_speed`)
         when ``tracker.search_cap_follows_speed``; never below the cap configured."""
         if speed_mps is None or not self.config.tracker.search_cap_follows_speed:
             return
-        cap = cap_for_speed(self.rig, self._base_cap_px, float(speed_mps))
+        cap = self._cap_formula.cap_for_speed(self._base_cap_px, float(speed_mps))
         if cap != self.tracker.config.max_search_half_size_px:
             self.counters["search_cap_changes"] += 1
             self.tracker.config.max_search_half_size_px = cap
