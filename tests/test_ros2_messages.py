@@ -163,6 +163,7 @@ def test_events_go_in_time_order_once_every_stream_has_caught_up():
     assert buf.late["laser"] == 1
     buf.push("camera", 1.04, "frame 1.04", arrived_s=0.01)
     assert buf.pop_ready(0.01) == []  # the laser may still send a scan before 1.04
+    assert buf.newest("camera") == 1.04 and buf.newest("laser") == 0.99 and buf.newest("odometry") is None  # (held or given)
     buf.push("laser", 1.03, "scan 1.03", arrived_s=0.02)
     assert buf.pop_ready(0.02) == ["scan 1.03"]
     buf.push("odometry", 1.04, "odom 1.04", arrived_s=0.025)

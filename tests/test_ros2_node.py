@@ -63,7 +63,7 @@ def node_run(bag, bag_run, tmp_path_factory):
         ("/dem_graph/elevation_map", GRID_MAP, DEFAULT.with_depth(400)), ("/dem_graph/odometry", ODOMETRY, DEFAULT.with_depth(400)),
         ("/dem_graph/cost_map", COST, LATCHED.with_depth(400)), ("/diagnostics", DIAGNOSTICS, DEFAULT.with_depth(100)),
     ])
-    node = start_node(env, root / "run", *TOPICS, "--estimator", "ptpm", "--as-fast-as-possible", log_path=root / "node.log")
+    node = start_node(env, root / "run", *TOPICS, "--estimator", "ptpm", "--as-fast-as-possible", "--max-frame-lag-s", "0", log_path=root / "node.log")
     try:
         played = play(env, bag, "--wait-for-subscribers-s", "60")
         assert played.returncode == 0, played.stderr

@@ -45,6 +45,10 @@ def ros2() -> None:
 @option("--max-frames", type=int, metavar="N", default=None, group=ESTIMATOR, help="Stop after this many frames.")
 @realtime_option(True, "a frame's deferred work done between frames, as on the vehicle; --as-fast-as-possible does each frame's whole work in it, as `run` does", group=ESTIMATOR)
 @option("--reorder-window-s", type=float, default=0.1, show_default=True, group=TIMING, help="An event waits at most this long for the other streams to catch up.")
+@option(
+    "--max-frame-lag-s", type=float, default=0.2, show_default=True, group=TIMING,
+    help="A frame this far behind the newest image received is skipped, so the map stays current when the machine is slower than the camera; 0 or less: every frame.",
+)
 @option("--startup-s", type=float, default=1.0, show_default=True, group=TIMING, help="Seconds of images and scans taken before the rig is derived.")
 @option("--topic-timeout-s", type=float, default=5.0, show_default=True, group=TIMING, help="A topic silent this long from the start is reported (refused if the rig needs it).")
 @option("--warm-up/--no-warm-up", default=True, show_default=True, group=TIMING, help="Compile or load the estimator's kernels before subscribing (2-3 s; 20 s on a new installation), not while the robot's messages wait.")
@@ -52,7 +56,7 @@ def ros2() -> None:
 @out_option("Run folder, kept current as the node runs.", "ros2-node", "<domain>", group="Output")
 @option("--overwrite", is_flag=True, group="Output", help="Replace an earlier run in --out.")
 @friendly_errors
-def node_command(image_topic, scan_topic, odometry_topic, imu_topic, camera_info_topic, body_frame, camera_frame, laser_frame, rig_path, map_frame, odom_frame, namespace, global_map_period_s, config_path, estimator, max_points, max_frames, realtime, reorder_window_s, startup_s, topic_timeout_s, warm_up, on_clock_back, out_dir, overwrite) -> None:
+def node_command(image_topic, scan_topic, odometry_topic, imu_topic, camera_info_topic, body_frame, camera_frame, laser_frame, rig_path, map_frame, odom_frame, namespace, global_map_period_s, config_path, estimator, max_points, max_frames, realtime, reorder_window_s, max_frame_lag_s, startup_s, topic_timeout_s, warm_up, on_clock_back, out_dir, overwrite) -> None:
     """Join the robot's ROS 2 graph and map from its topics while it drives: the local GridMap ahead
     (/dem_graph/elevation_map), the global one (latched), a cost map for Nav2, the odometry, tf
     (map -> odom) and /diagnostics. Ctrl-C or SIGTERM writes the run folder (docs/guide/ros2.md)."""
@@ -68,7 +72,7 @@ def node_command(image_topic, scan_topic, odometry_topic, imu_topic, camera_info
     topics = BagTopics(image_topic, scan_topic, odometry_topic, imu_topic, camera_info_topic, body_frame, camera_frame, laser_frame)
     options = NodeOptions(
         topics, out_dir, rig_path, config_path, overrides, OutputTopics(namespace=namespace), map_frame=map_frame, odom_frame=odom_frame,
-        reorder_window_s=reorder_window_s, startup_s=startup_s, topic_timeout_s=topic_timeout_s, global_map_period_s=global_map_period_s,
+        reorder_window_s=reorder_window_s, max_frame_lag_s=max_frame_lag_s if max_frame_lag_s > 0 else None, startup_s=startup_s, topic_timeout_s=topic_timeout_s, global_map_period_s=global_map_period_s,
         on_clock_back=on_clock_back, domain_id=domain, overwrite=overwrite, warm_up=warm_up,
     )
     click.echo(f"dem_graph node on ROS 2 domain {domain}: {'its kernels made ready, then ' if warm_up else ''}waiting for {image_topic} and {scan_topic} (Ctrl-C to stop)", err=True)

@@ -89,6 +89,7 @@ class LiveSourceMetrics(MetricsModel):
     frames_published: int = 0
     incompatible_qos: list[str] | None = None  # one line per topic and policy
     clock_resets: int = 0  # the sources' clocks went back (a player restarted): the run ended there
+    frames_skipped: int = 0  # images further behind the newest one than --max-frame-lag-s when their turn came (the machine was slower than the camera)
 
 
 class RunMetrics(MetricsModel):

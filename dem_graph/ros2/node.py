@@ -93,6 +93,7 @@ class NodeOptions:
     heading_frame: str = "dem_graph_heading"
     cost_limits: CostLimits = field(default_factory=CostLimits)
     reorder_window_s: float = 0.1  # an event waits at most this long for the other streams
+    max_frame_lag_s: float | None = 0.2  # a frame this far behind the newest image received is skipped (the map stays current on a machine slower than the camera); None: every frame
     startup_s: float = 1.0  # seconds of images and scans kept before the rig is derived (their rates)
     topic_timeout_s: float = 5.0  # a topic silent this long from the start is reported (and refused if the rig needs it)
     global_map_period_s: float = 10.0  # the whole map: 12.6 MB and 60-80 ms of work after 60 m here, off the frames' path
@@ -366,6 +367,7 @@ class _Session:
         self._wire_s: list[float] = []  # each frame: its image from the publisher's write to the node's take
         self._order_wait_s: list[float] = []  # ... from its take to the pipeline (the reorder buffer's wait)
         self._in_node_s: list[float] = []  # ... from its take to its outputs written
+        self.frames_skipped = 0  # frames behind the newest image by more than max_frame_lag_s, not given to the pipeline
 
     # --- start --------------------------------------------------------------------------------
     def start(self) -> None:
@@ -580,6 +582,8 @@ class _Session:
 
     def _give(self, events: list) -> None:
         for event in events:
+            if isinstance(event, CameraFrame) and self._behind(event):
+                continue
             if isinstance(event, CameraFrame):
                 if event.t_s in self._image_times:
                     self._image_times[event.t_s][2] = time.time_ns()
@@ -593,6 +597,22 @@ class _Session:
             self.pipeline.on_event(event)
             if self.pipeline.updates > before:  # a frame held for its odometry went with it
                 self._frame_published()
+
+    def _behind(self, frame: CameraFrame) -> bool:
+        """Whether ``frame`` is skipped: a newer image has come and ``frame`` is more than
+        ``max_frame_lag_s`` before it (by their stamps). When the machine keeps up, the newest image
+        is at most a reorder window ahead and nothing is skipped; when it falls behind the camera,
+        the frames in between go and the next map is of a current image (the motion between the
+        frames given is larger: the estimators' prediction covers it)."""
+        lag = self.o.max_frame_lag_s
+        newest = self.reorder.newest(CAMERA)
+        if lag is None or newest is None or newest - frame.t_s <= lag:
+            return False
+        self.frames_skipped += 1
+        self._image_times.pop(frame.t_s, None)
+        if self.frames_skipped in (1, 100, 1000) or self.frames_skipped % 10000 == 0:
+            log.warning("the node is behind the camera: a frame %.0f ms older than the newest image was skipped (%d so far; --max-frame-lag-s)", (newest - frame.t_s) * 1e3, self.frames_skipped)
+        return True
 
     def _frame_published(self) -> None:
         """The frame's outputs are out: the transport's cost since the last frame (messages taken and
@@ -694,8 +714,11 @@ class _Session:
         timing = TimingStats.from_seconds(recent)
         period_ms = 1e3 / self._rate(CAMERA) if self._rate(CAMERA) else math.nan
         level = outputs.OK if not timing.p95_ms > period_ms else outputs.WARN
-        statuses = [outputs.diagnostic_status(codec, "dem_graph: frame time", level, "within the camera's period" if level == outputs.OK else "p95 over the camera's period: frames wait", {
-            "median_ms": timing.median_ms, "p95_ms": timing.p95_ms, "camera_period_ms": period_ms, "frames": p.updates,
+        message = "within the camera's period" if level == outputs.OK else "p95 over the camera's period: frames wait"
+        if self.frames_skipped:
+            level, message = outputs.WARN, f"{message}; {self.frames_skipped} frames skipped, behind the camera"
+        statuses = [outputs.diagnostic_status(codec, "dem_graph: frame time", level, message, {
+            "median_ms": timing.median_ms, "p95_ms": timing.p95_ms, "camera_period_ms": period_ms, "frames": p.updates, "frames_skipped": self.frames_skipped,
         })]
         lag = p.estimator.graph_lag_keyframes
         statuses.append(outputs.diagnostic_status(codec, "dem_graph: graph", outputs.OK, "no graph" if lag is None else f"results {lag} keyframes late", {"lag_keyframes": "" if lag is None else lag, "estimator": p.name}))
@@ -761,7 +784,7 @@ class _Session:
             transport_p95_ms=transport.p95_ms, camera_wire_median_ms=TimingStats.from_seconds(self._wire_s).median_ms,
             order_wait_median_ms=TimingStats.from_seconds(self._order_wait_s).median_ms, publish_median_ms=TimingStats.from_seconds(self.publisher.publish_s).median_ms,
             in_node_median_ms=in_node.median_ms, in_node_p95_ms=in_node.p95_ms, frames_published=self.publisher.frames_published, incompatible_qos=list(self.node.participant.incompatible) or None,
-            clock_resets=self.clock_resets,
+            clock_resets=self.clock_resets, frames_skipped=self.frames_skipped,
         )
         run.metrics.dataset = run.metrics.live_source.source
         paths = {}

@@ -98,6 +98,10 @@ class ReorderBuffer:
         """Whether an event of ``stream`` waits here."""
         return any(h.stream == stream for h in self._heap)
 
+    def newest(self, stream: str) -> float | None:
+        """The newest stamp pushed for ``stream``, held or given (None before its first event)."""
+        return self._high.get(stream)
+
     def next_deadline_s(self) -> float | None:
         """The wall time at which the oldest event held goes whatever comes (None when none is held)."""
         return min(h.arrived_s for h in self._heap) + self.window_s if self._heap else None

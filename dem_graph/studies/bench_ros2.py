@@ -64,6 +64,7 @@ class Ros2BenchRun:
     whole_frame_p95_ms: float
     sent: dict[str, int]
     received: dict[str, int]
+    frames_skipped: int = 0  # images the node skipped, behind the camera (--max-frame-lag-s)
 
     @property
     def lost(self) -> int:
@@ -81,15 +82,15 @@ class Ros2BenchResult:
     def table(self) -> str:
         rows = [
             [str(i + 1), f"{r.gridmaps_received}/{r.frames_sent}", f"{r.caught_up_s:.1f}", f"{r.latency.median_ms:.1f}", f"{r.latency.p95_ms:.1f}", f"{r.transport_median_ms:.2f}",
-             f"{r.whole_frame_median_ms:.1f}", f"{r.whole_frame_p95_ms:.1f}", str(r.lost)]
+             f"{r.whole_frame_median_ms:.1f}", f"{r.whole_frame_p95_ms:.1f}", str(r.frames_skipped), str(r.lost)]
             for i, r in enumerate(self.runs)
         ]
         med = lambda values: float(np.median(values))  # noqa: E731
         rows.append(["median", "", f"{med([r.caught_up_s for r in self.runs]):.1f}", f"{med([r.latency.median_ms for r in self.runs]):.1f}", f"{med([r.latency.p95_ms for r in self.runs]):.1f}",
                      f"{med([r.transport_median_ms for r in self.runs]):.2f}", f"{med([r.whole_frame_median_ms for r in self.runs]):.1f}",
-                     f"{med([r.whole_frame_p95_ms for r in self.runs]):.1f}", ""])
+                     f"{med([r.whole_frame_p95_ms for r in self.runs]):.1f}", "", ""])
         return format_table(
-            ["run", "GridMaps/frames", "caught up s", f"latency median ms (after {self.warmup_s:g} s)", "latency p95 ms", "transport ms/frame", "frame median ms", "frame p95 ms", "lost"],
+            ["run", "GridMaps/frames", "caught up s", f"latency median ms (after {self.warmup_s:g} s)", "latency p95 ms", "transport ms/frame", "frame median ms", "frame p95 ms", "skipped", "lost"],
             rows, title=f"camera message -> GridMap on the wire, {self.estimator}, player/node/subscriber in 3 processes on {self.machine}",
         )
 
@@ -167,7 +168,7 @@ def _one_run(run_dir: Path, bag: Path, env: dict, estimator: str, duration_s: fl
     live = metrics["live_map"]
     return Ros2BenchRun(
         TimingStats.from_seconds(latencies), caught_up, len(sent_images), len(rows), metrics["live_source"]["transport_median_ms"], live["whole_frame_median_ms"], live["whole_frame_p95_ms"],
-        sent, received,
+        sent, received, metrics["live_source"].get("frames_skipped", 0),
     )
 
 
