@@ -125,3 +125,50 @@ def test_the_car_starts_at_its_speed_untold(car_street, tmp_path):
     result, metrics = _run(car_street, tmp_path / "off", "isam2", "frontend:\n  ground_motion:\n    enabled: false\n")
     assert result.exit_code == 3 and metrics["status"] == "failed"
     assert metrics["tracking"]["failed_fraction"]["search_too_large"] > 0.9
+
+
+@pytest.fixture(scope="module")
+def car_street_mis_mounted(car_street, tmp_path_factory):
+    """The car's first 20 m with its rig.yaml's camera 7 cm higher and 2 degrees further down than it
+    was (the laser moved with it: the laser-camera transform is a calibration's); the rest linked."""
+    from dem_graph.geometry.rig import camera_remounted, load_rig, save_rig
+
+    out = tmp_path_factory.mktemp("car_street_mis_mounted") / "ds"
+    out.mkdir()
+    for p in car_street.iterdir():
+        if p.name != "rig.yaml":
+            (out / p.name).symlink_to(p.resolve())
+    save_rig(camera_remounted(load_rig(car_street / "rig.yaml"), 0.07, np.radians(2.0)), out / "rig.yaml")
+    return out
+
+
+def test_the_laser_below_the_view_gives_the_scale_and_the_level_on_a_rig_mounted_wrong(car_street, car_street_mis_mounted, tmp_path, caplog):
+    """The laser's line never in the image, the camera's mount 2 degrees and 7 cm off: isam2 ties the
+    landmarks to the scans of their ground (on by itself for this rig), finds the mount off from the
+    ground of the first second (a warning) and levels the world from it. The path's length is the
+    truth's within 2 % (the issue's bound; measured 0.2 %). Without the ties the camera's mount sets
+    the scale: over 5 % short (measured 12.9 %); the DEM's height error over the laser's cells with
+    the ties under a quarter of that without (measured 6.9 against 36.7 cm: the pitch still drifts
+    some tenths of a degree without gravity, docs/pushbroom.md)."""
+    from dem_graph.io.tum import read_tum
+
+    truth = FolderSequence(car_street).ground_truth.trajectory
+
+    def scale_error(out):
+        estimate = read_tum(out / "trajectory.tum")
+        return estimate.path_length_m / truth.slice(float(estimate.t_s[0]), float(estimate.t_s[-1])).path_length_m - 1.0
+
+    result, tied = _run(car_street_mis_mounted, tmp_path / "tied", "isam2")
+    assert result.exit_code == 0, result.output
+    assert tied["events"]["laser_ties"] > 500 and tied["events"]["laser_ties_level"] > 50
+    # the mount found off: the ground of the first second tilted beyond the 1 degree that decides (measured 1.7 degrees, 6 cm up;
+    # the start pose, free, has already taken some of the 2 degrees by then)
+    assert "the camera's and laser's mount in the rig is probably off" in caplog.text
+    assert tied["events"]["laser_start_ground_tilt_mdeg"] > 1000
+    assert abs(scale_error(tmp_path / "tied")) < 0.02
+    result, untied = _run(car_street_mis_mounted, tmp_path / "untied", "isam2", "isam2:\n  laser_ties: 'off'\n")
+    assert result.exit_code == 0, result.output
+    assert "laser_ties" not in untied["events"]
+    assert scale_error(tmp_path / "untied") < -0.05
+    dem_tied, dem_untied = (m["dem"]["height_error_laser_cells"]["rmse_m"] for m in (tied, untied))
+    assert dem_tied < 0.25 * dem_untied

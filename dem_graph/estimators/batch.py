@@ -42,7 +42,15 @@ from gtsam.symbol_shorthand import B, L, V, X
 from dem_graph.errors import DemGraphError, one_line
 from dem_graph.estimators.base import ONLINE_TRAJECTORY, EstimatorResult
 from dem_graph.estimators.batch_start import fit_landmarks
-from dem_graph.estimators.graph_factors import ProjectionFactors, calibration, link_factor, odometry_factor, seeds_factors
+from dem_graph.estimators.graph_factors import (
+    ProjectionFactors,
+    calibration,
+    level_factor,
+    link_factor,
+    odometry_factor,
+    points_in_frame_factors,
+    seeds_factors,
+)
 from dem_graph.estimators.imu_preintegration import bias_sigmas, preintegrate, preintegration_params
 from dem_graph.estimators.measurement_log import MeasurementLog
 from dem_graph.geometry.rig import ImuSpec, SensorRig
@@ -137,6 +145,14 @@ def build_graph(mlog: MeasurementLog, rig: SensorRig, T0: np.ndarray, P0: np.nda
         keys = ([X(f + 1) for f in mlog.seed_frame], [L(lm) for lm in mlog.seed_landmark], [seed.kind for seed in mlog.seeds])
         for factor in seeds_factors(*keys, p_body, Sigma_body, rig.camera_model, K, T_body_cam, sigma_seed_px):
             graph.add(factor)
+    for ties in mlog.ties:  # the laser's ties (a laser the camera does not see), each in the frame of its scans
+        if ties.pin_start is not None:  # the rig's mount agrees with the laser's ground: the start pose's own prior back
+            graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(np.asarray(T0, dtype=float)), gtsam.noiseModel.Gaussian.Covariance(ties.pin_start)))
+        pose_keys, point_keys = [X(int(f) + 1) for f in ties.frames], [L(int(lm)) for lm in ties.landmarks]
+        for factor in points_in_frame_factors(pose_keys, point_keys, ties.p_frame, ties.Sigma_frame):
+            graph.add(factor)
+        for lm, mean, Sigma in zip(ties.level_landmarks.tolist(), ties.level_mean, ties.level_Sigma):
+            graph.add(level_factor(L(lm), mean, Sigma))
     frames, landmarks, uv = mlog.observations()
     projection = ProjectionFactors(K, T_body_cam, robust=robust)
     for f, lm, z in zip(frames.tolist(), landmarks.tolist(), uv):
@@ -154,13 +170,33 @@ def _fit_landmarks_to_poses(
     frames, obs_landmarks, uv = mlog.observations()
     links = np.array([(row[a], row[b]) for a, b, _ in mlog.links], dtype=np.int64).reshape(-1, 2)
     p_body, Sigma_body = mlog.seed_arrays()
+    prior_pose, prior_landmark = np.asarray(mlog.seed_frame, dtype=np.int64) + 1, np.array([row[lm] for lm in mlog.seed_landmark], dtype=np.int64)
+    if mlog.ties:  # the laser's ties are priors of the same form (a landmark in a pose's frame); the level ones in the start's (X(0))
+        prior_pose, prior_landmark, p_body, Sigma_body = _with_ties(mlog, T0, row, prior_pose, prior_landmark, p_body, Sigma_body)
     X, iterations = fit_landmarks(
         np.array([points[lm] for lm in landmarks], dtype=float).reshape(-1, 3), T_world_body,
         frames + 1, np.array([row[lm] for lm in obs_landmarks.tolist()], dtype=np.int64), uv, sigma_px, rig.camera_model, rig.T_body_cam,
-        np.asarray(mlog.seed_frame, dtype=np.int64) + 1, np.array([row[lm] for lm in mlog.seed_landmark], dtype=np.int64), p_body, Sigma_body,
+        prior_pose, prior_landmark, p_body, Sigma_body,
         links, np.array([sigma for _, _, sigma in mlog.links], dtype=float), robust=robust,
     )  # fmt: skip
     return dict(zip(landmarks, X)), iterations
+
+
+def _with_ties(mlog: MeasurementLog, T0: np.ndarray, row: dict[int, int], pose, landmark, p_body, Sigma_body) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The seeds' priors (pose index, landmark row, body-frame position and covariance) with the laser's
+    ties after them: each in its frame's pose, and each level tie's world-frame prior in the start pose's frame."""
+    R0, t0 = np.asarray(T0, dtype=float)[:3, :3], np.asarray(T0, dtype=float)[:3, 3]
+    poses, rows, ps, Sigmas = [pose], [landmark], [p_body], [Sigma_body]
+    for ties in mlog.ties:
+        poses.append(ties.frames + 1)
+        rows.append(np.array([row[int(lm)] for lm in ties.landmarks], dtype=np.int64))
+        ps.append(ties.p_frame)
+        Sigmas.append(ties.Sigma_frame)
+        poses.append(np.zeros(len(ties.level_landmarks), dtype=np.int64))
+        rows.append(np.array([row[int(lm)] for lm in ties.level_landmarks], dtype=np.int64))
+        ps.append((ties.level_mean.reshape(-1, 3) - t0) @ R0)
+        Sigmas.append(R0.T @ ties.level_Sigma.reshape(-1, 3, 3) @ R0)
+    return np.concatenate(poses), np.concatenate(rows), np.concatenate(ps).reshape(-1, 3), np.concatenate(Sigmas).reshape(-1, 3, 3)
 
 
 def _fit_to_held_poses(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, params) -> gtsam.Values:

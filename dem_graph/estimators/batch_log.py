@@ -9,6 +9,7 @@ import numpy as np
 
 from dem_graph.estimators.batch import BatchResult, smooth_batch
 from dem_graph.estimators.isam2_config import Isam2Config
+from dem_graph.estimators.laser_ties import LaserTies
 from dem_graph.estimators.measurement_log import MeasurementLog
 from dem_graph.frontend.frontend import NewPoint
 from dem_graph.geometry.rig import SensorRig
@@ -40,6 +41,10 @@ class BatchLog:
     def add_seeds(self, frame: int, new: list[NewPoint], landmarks: np.ndarray) -> None:
         """The new points seeded at frame ``frame``, starting ``landmarks``."""
         self.log.add_seeds(frame, new, landmarks)
+
+    def add_ties(self, ties: LaserTies) -> None:
+        """Landmarks tied to the scans of their ground (:mod:`~dem_graph.estimators.laser_ties`), each in its frame."""
+        self.log.add_ties(ties)
 
     def add_link(self, before: int, after: int) -> None:
         """A patch refresh: landmark ``after`` continues ``before``."""

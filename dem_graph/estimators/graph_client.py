@@ -34,6 +34,7 @@ from dem_graph.estimators.graph_worker import (
 )
 from dem_graph.estimators.isam2_config import Isam2Config
 from dem_graph.estimators.keyframe_graph import KeyframeGraph
+from dem_graph.estimators.laser_ties import NO_TIES, LaserTies
 from dem_graph.estimators.live_points import LivePoints
 from dem_graph.frontend.frontend import NewPoint
 from dem_graph.geometry.lie import adjoint, skew
@@ -279,6 +280,21 @@ class GraphClient:
         return self._opened is not None
 
     @property
+    def open_keyframe_number(self) -> int:
+        """The open keyframe's number (:meth:`open_keyframe`)."""
+        if self._opened is None:
+            raise DemGraphError("no keyframe is open: open_keyframe first")
+        return self._opened[0]
+
+    def window(self) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """The keyframes (T_world_body) and landmarks (X_world) of the last result's window at their
+        latest estimates, with the keyframes sent since and the open one (the front end's guesses;
+        the landmarks started since are live points)."""
+        sent = set(self._sent_T) | ({self._opened[0]} if self._opened is not None else set())
+        poses = {k: self.poses[k] for k in self._window_poses | sent if k in self.poses}
+        return poses, {lm: self.points[lm] for lm in self._window_points if lm in self.points}
+
+    @property
     def keyframe_before_open_t_s(self) -> float:
         """The time of the keyframe before the open one (the open one's own for the first frame)."""
         if self._opened is None:
@@ -292,12 +308,14 @@ class GraphClient:
         new: list[NewPoint],
         point_steps: np.ndarray | None = None,
         imu: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+        ties: LaserTies = NO_TIES,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The open keyframe's message to the graph: its pose, the motion since the last one, its
         observations, the new points with their seeds and the refreshed patches' links. Returns the
         new points' landmarks, world positions and covariances (None without new points).
         ``point_steps`` (m,3): how far each observation moved its live point (see :meth:`apply`);
-        ``imu``: the IMU samples since the last keyframe (:meth:`~dem_graph.estimators.imu_preintegration.ImuBuffer.span`)."""
+        ``imu``: the IMU samples since the last keyframe (:meth:`~dem_graph.estimators.imu_preintegration.ImuBuffer.span`);
+        ``ties``: landmarks tied to the scans of their ground (:mod:`~dem_graph.estimators.laser_ties`)."""
         if self._opened is None:
             raise DemGraphError("no keyframe is open: open_keyframe first")
         k, t_s, T, U_kf, Q_kf, _ = self._opened
@@ -320,7 +338,7 @@ class GraphClient:
         # keyframe k - 1 as this frame's pose was measured from: in flight as corrected since, else the graph's
         T_prev = self._sent_T.get(k - 1, self.poses.get(k - 1))
         T_prev = None if T_prev is None else T_prev.copy()
-        self._graph.send(KeyframeMessage(k, t_s, T.copy(), U_kf, Q_kf, *observations, links, new_landmarks, want_marginal, imu, T_prev))
+        self._graph.send(KeyframeMessage(k, t_s, T.copy(), U_kf, Q_kf, *observations, links, new_landmarks, want_marginal, imu, T_prev, ties))
         self._sent_T[k] = T.copy()
         self._Q_since[k] = np.zeros((6, 6))
         if point_steps is not None:

@@ -17,6 +17,8 @@
 - :func:`seed_factors`: the factors a new point enters the graph with (laser or flat-ground seed);
   :func:`seeds_factors` the same for many points at once.
 - :func:`link_factor`: a landmark continued by another (a patch refresh), within a sigma.
+- :func:`level_factor`: a landmark on the start pose's ground plane (the laser's ties of the start's
+  ground level the world: :mod:`~dem_graph.estimators.laser_ties`).
 
 Covariances are in gtsam's tangent order [rotation, translation] (the package convention).
 """
@@ -51,6 +53,14 @@ def point_in_frame_factors(pose_key: int, point_key: int, p_frame: np.ndarray, S
     if p.size != 3 or Sigma.shape != (3, 3):
         raise ValueError(f"a point-in-frame measurement needs a 3D point and a 3x3 covariance, got {p_frame} and shape {Sigma.shape}")
     return _point_in_frame_factors([pose_key], [point_key], p.reshape(1, 3), Sigma[None])
+
+
+def points_in_frame_factors(pose_keys, point_keys, p_frame: np.ndarray, Sigma_frame: np.ndarray) -> list[gtsam.NonlinearFactor]:
+    """:func:`point_in_frame_factors` of many measurements: ``p_frame`` (m,3), ``Sigma_frame`` (m,3,3), in their order."""
+    p, Sigma = np.asarray(p_frame, dtype=float).reshape(-1, 3), np.asarray(Sigma_frame, dtype=float).reshape(-1, 3, 3)
+    if not (len(p) == len(Sigma) == len(pose_keys) == len(point_keys)):
+        raise ValueError(f"{len(pose_keys)} pose keys, {len(point_keys)} point keys, {len(p)} points and {len(Sigma)} covariances: one of each per measurement")
+    return _point_in_frame_factors(list(pose_keys), list(point_keys), p, Sigma)
 
 
 def _virtual_sensors(p_frame: np.ndarray, Sigma_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -193,6 +203,12 @@ def seeds_factors(
                 raise ValueError(f"a camera seed must lie in front of the camera, got {p[i]} in the body frame")
             by_seed[i] = [range_factor(pose_keys[i], point_keys[i], range_m, sigma_along, camera_pose), projection(pose_keys[i], point_keys[i], uv[0], sigma_seed_px)]
     return [f for factors in by_seed for f in factors]
+
+
+def level_factor(point_key: int, mean_world: np.ndarray, Sigma_world: np.ndarray) -> gtsam.PriorFactorPoint3:
+    """The point ``point_key`` on the start pose's ground plane: a world-frame prior, tight across the
+    plane (:func:`~dem_graph.estimators.laser_ties.level_prior`), for a laser tie of the start's ground."""
+    return gtsam.PriorFactorPoint3(point_key, gtsam.Point3(*np.asarray(mean_world, dtype=float)), gtsam.noiseModel.Gaussian.Covariance(np.asarray(Sigma_world, dtype=float)))
 
 
 def link_factor(key_before: int, key_after: int, sigma_m: float) -> gtsam.BetweenFactorPoint3:

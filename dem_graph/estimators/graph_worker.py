@@ -43,9 +43,18 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from dem_graph.errors import DemGraphError
-from dem_graph.estimators.graph_factors import ProjectionFactors, calibration, link_factor, odometry_factor, seeds_factors
+from dem_graph.estimators.graph_factors import (
+    ProjectionFactors,
+    calibration,
+    level_factor,
+    link_factor,
+    odometry_factor,
+    points_in_frame_factors,
+    seeds_factors,
+)
 from dem_graph.estimators.imu_preintegration import bias_sigmas, preintegrate, preintegration_params
 from dem_graph.estimators.keyframe_graph import GraphUpdateError, KeyframeGraph
+from dem_graph.estimators.laser_ties import NO_TIES, LaserTies
 from dem_graph.frontend.frontend import PointKind
 from dem_graph.geometry.camera import PinholeCamera
 from dem_graph.geometry.rig import ImuSpec
@@ -101,6 +110,7 @@ class KeyframeMessage:
     want_marginal: bool = False  # answer with keyframe k's marginal pose covariance
     imu: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # the IMU samples since keyframe k - 1: times (n,), rates, forces (n,3)
     T_world_prev: np.ndarray | None = None  # keyframe k - 1 as the front end had it when it sent k: what its guesses of k and of the new points were measured from
+    ties: LaserTies = NO_TIES  # landmarks tied to the scans of their ground, each measured in a keyframe of the window (laser_ties)
 
 
 @dataclass(frozen=True)
@@ -253,6 +263,7 @@ class GraphWorker:
                 continue
             g.add_factor(self._projection(X(k), L(lm), z, sigma))
             g.observed(lm)
+        self._add_ties(m.ties)
         for p in m.new_points:
             g.add_point(p.landmark, p.X_world if C is None else transform_points(C, p.X_world))
         if m.new_points:
@@ -261,6 +272,23 @@ class GraphWorker:
                 [X(k)] * len(new), [L(p.landmark) for p in new], [p.kind for p in new], np.array([p.p_body for p in new]), np.array([p.Sigma_body for p in new]),
                 s.camera, self._K, s.T_body_cam, s.camera_point_sigma_px,
             ):  # fmt: skip
+                g.add_factor(f)
+
+    def _add_ties(self, ties: LaserTies) -> None:
+        """The laser's ties whose landmark and keyframe are both still in the window (the others came too
+        late), and the start pose's own prior put back when the ties say the rig's mount agrees."""
+        g = self.graph
+        if ties.pin_start is not None and g.pose_in_window(0):
+            g.add_factor(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(self.setup.T_world_body_0), gtsam.noiseModel.Gaussian.Covariance(ties.pin_start)))
+        for lm, mean, Sigma in zip(ties.level_landmarks.tolist(), ties.level_mean, ties.level_Sigma):  # the start's ground: the world's level
+            if g.in_window(lm):
+                g.add_factor(level_factor(L(lm), mean, Sigma))
+        if not len(ties):
+            return
+        ok = np.array([g.in_window(lm) and g.pose_in_window(k) for k, lm in zip(ties.keyframes.tolist(), ties.landmarks.tolist())], dtype=bool)
+        if ok.any():
+            pose_keys, point_keys = [X(int(k)) for k in ties.keyframes[ok]], [L(int(lm)) for lm in ties.landmarks[ok]]
+            for f in points_in_frame_factors(pose_keys, point_keys, ties.p_frame[ok], ties.Sigma_frame[ok]):
                 g.add_factor(f)
 
     def _stale_guess_correction(self, m: KeyframeMessage) -> np.ndarray | None:

@@ -26,7 +26,7 @@ reach the graph only through the weight of the next keyframe observation of the 
 
 ``batch: true`` (``--estimator isam2-batch``) also records every observation of every frame, and at
 the end smooths the whole log at once (:mod:`dem_graph.estimators.batch`). Its online pass only
-associates the data, so it makes a keyframe every ``batch_keyframe_every`` (5) frames: a fifth of the
+associates the data, so it makes a keyframe every ``batch_keyframe_every`` (5; 1 with the laser tied) frames: a fifth of the
 iSAM2 updates, while the batch still has a pose and the observations of every frame.
 
 :class:`Isam2Slam` drives three parts, each with its own state:
@@ -57,12 +57,14 @@ from dem_graph.estimators.graph_worker import GraphResult
 from dem_graph.estimators.imu_preintegration import ImuBuffer, gyro_rotation, with_rotation
 from dem_graph.estimators.isam2_config import Isam2Config, Isam2Options
 from dem_graph.estimators.keyframe_graph import KeyframeGraph
+from dem_graph.estimators.laser_ties import NO_TIES, LaserTieMaker, LaserTies, level_start_covariance
 from dem_graph.estimators.live_points import LivePoints
 from dem_graph.estimators.measurement_log import MeasurementLog
 from dem_graph.estimators.motion import constant_velocity_increment
 from dem_graph.estimators.online_filter import FrameMatches, OnlineFilter
 from dem_graph.estimators.point_archive import PointArchive
 from dem_graph.frontend.frontend import FrontEnd, NewPoint
+from dem_graph.geometry.ground_view import laser_view
 from dem_graph.geometry.lie import adjoint
 from dem_graph.geometry.rig import SensorRig
 from dem_graph.geometry.se3 import invert
@@ -76,8 +78,14 @@ class Isam2Slam(FrameDrivenEstimator):
     """Keyframe iSAM2 smoothing with the shared front end; feed it events in time order."""
 
     def __init__(self, rig: SensorRig, T_world_body_initial: np.ndarray, t_start_s: float, has_odometry: bool, config: Isam2Config | None = None):
-        self.config = config or Isam2Config()
-        c = self.config
+        c = config or Isam2Config()
+        # the laser tied to the landmarks over its ground, when the camera never sees its line (laser_ties):
+        # the start's ground then levels the world, the start pose's roll, pitch and height let free in the graph,
+        # and the batch's online pass makes every frame a keyframe unless told otherwise
+        ties_on = c.laser_ties == "on" or (c.laser_ties == "auto" and not laser_view(rig).in_view)
+        if ties_on and c.batch and c.batch_keyframe_every is None:
+            c = c.model_copy(update={"batch_keyframe_every": 1})
+        self.config = c
         self.name = "isam2-batch" if c.batch else "isam2"
         self.rig = rig
         self.frontend = FrontEnd(c.frontend, rig)
@@ -86,8 +94,10 @@ class Isam2Slam(FrameDrivenEstimator):
         T0 = np.array(T_world_body_initial, dtype=float)
         P0 = np.eye(6) * c.motion.initial_sigma_pose**2
         self._filter = OnlineFilter(c, rig, self.frontend, T0.copy(), P0, self.t_s)
-        self._client = GraphClient(c, rig, T0, P0, self.t_s, self.frontend.counters)
-        self._batch = BatchLog(c, rig, T0.copy(), P0) if c.batch else None
+        self._ties = LaserTieMaker(rig, T0, P0, self.t_s, self.frontend.counters) if ties_on else None
+        P0_graph = level_start_covariance(P0) if ties_on else P0
+        self._client = GraphClient(c, rig, T0, P0_graph, self.t_s, self.frontend.counters)
+        self._batch = BatchLog(c, rig, T0.copy(), P0_graph) if c.batch else None
         self._archived = PointArchive(self.frontend)  # the graph's latest estimate of each landmark is asked for in result()
         self._frames: list[FrameRecord] = []
         self._frames_since_keyframe = 0
@@ -250,10 +260,11 @@ class Isam2Slam(FrameDrivenEstimator):
             tg = time.perf_counter()
             # no point starts in a frame without texture; its scans wait for the next frame
             any_speed = self._speed_unknown_at_start(self.frontend, frame)  # seeded over the focus area's whole depth
-            new = [] if event.textureless else filt.new_points(event.image, event.t_s, self._scans.take_until(event.t_s), live_uv, math.inf if any_speed else None)
+            scans = [] if event.textureless else self._scans.take_until(event.t_s)
+            new = filt.new_points(event.image, event.t_s, scans, live_uv, math.inf if any_speed else None) if not event.textureless else []
             tn = time.perf_counter()
             landmarks, uv, sigma_px, point_steps = observations
-            self._send_keyframe(event.t_s, (landmarks, uv, sigma_px), new, point_steps, frame)
+            self._send_keyframe(event.t_s, (landmarks, uv, sigma_px), new, point_steps, frame, scans)
             graph_s += time.perf_counter() - tn
             map_s += tn - tg
         tg = time.perf_counter()
@@ -350,11 +361,13 @@ class Isam2Slam(FrameDrivenEstimator):
             live.follow(i, landmark, segment, np.linalg.inv(Sigma_old + sigma2 * np.eye(3)))
         return old
 
-    def _send_keyframe(self, t_s: float, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint], point_steps: np.ndarray, frame: int) -> None:
-        """The keyframe (opened here unless it was in its frame, number ``frame``) to the graph; its
-        new points join the live ones (and the batch's log)."""
+    def _send_keyframe(self, t_s: float, observations: tuple[np.ndarray, np.ndarray, np.ndarray], new: list[NewPoint], point_steps: np.ndarray, frame: int, scans: list) -> None:
+        """The keyframe (opened here unless it was in its frame, number ``frame``) to the graph, with
+        the laser's ties when they are on (``scans``: those since the last keyframe); its new points
+        join the live ones (and the batch's log)."""
         if not self._client.keyframe_open:
             self._client.open_keyframe(t_s, self._filter.T)
+        ties = self._laser_ties(t_s, frame, scans) if self._ties is not None else NO_TIES
         imu = None
         if self._imu is not None:
             t_prev = self._client.keyframe_before_open_t_s
@@ -368,7 +381,9 @@ class Isam2Slam(FrameDrivenEstimator):
         if budget is not None and new:
             room = max(0, budget - int(np.count_nonzero(self.live.landmark >= 0)))
             new, own = new[:room], new[room:]
-        started = self._client.send_keyframe(self._filter.P_loc, observations, new, point_steps, imu)
+        started = self._client.send_keyframe(self._filter.P_loc, observations, new, point_steps, imu, ties)
+        if self._batch is not None and (len(ties) or len(ties.level_landmarks) or ties.pin_start is not None):
+            self._batch.add_ties(ties)
         if started is not None:
             landmarks, X_world, Sigma_world = started
             self.live.add(np.array([p.point_id for p in new]), landmarks, X_world, Sigma_world)
@@ -377,6 +392,18 @@ class Isam2Slam(FrameDrivenEstimator):
         if own:
             self._keep_in_front_end(own)
         self._frames_since_keyframe = 0
+
+    def _laser_ties(self, t_s: float, frame: int, scans: list) -> LaserTies:
+        """The open keyframe's scans kept, and the landmarks of the window (live ones where they are
+        now) tied to the kept scans of their ground."""
+        client, live = self._client, self.live
+        k = client.open_keyframe_number
+        self._ties.add_scans(k, frame, t_s, client.poses[k], scans, self._filter.history)
+        poses, points = client.window()
+        in_graph = live.landmark >= 0
+        points.update(zip(live.landmark[in_graph].tolist(), live.X[in_graph]))
+        landmarks = np.fromiter(points, dtype=np.int64, count=len(points))
+        return self._ties.ties(poses, landmarks, np.array([points[lm] for lm in landmarks.tolist()]).reshape(-1, 3), t_s)
 
     def _keep_in_front_end(self, new: list[NewPoint]) -> None:
         """New points beyond ``graph_max_landmarks``: live points of the front end only, numbered

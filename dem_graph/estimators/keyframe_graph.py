@@ -128,6 +128,10 @@ class KeyframeGraph:
         """The landmark is a variable of the smoother (or will be at the next update)."""
         return int(landmark) in self._point_t or int(landmark) in self._new_point_t
 
+    def pose_in_window(self, k: int) -> bool:
+        """Keyframe ``k`` is a variable of the smoother (or will be at the next update)."""
+        return int(k) in self._pose_t or int(k) in self._new_pose_t
+
     def window_estimates(self) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
         """The latest estimates of the keyframes and of the landmarks in the window."""
         return {k: self.poses[k] for k in self._pose_t}, {j: self.points[j] for j in self._point_t}

@@ -3,7 +3,8 @@
 Per frame: its time, the motion from the previous frame (odometry or the motion model) with its
 covariance, and the inlier observations (landmark and pixel). Per new point: the frame it was seeded
 at, its landmark and its seed (kind, body-frame position and covariance). Per patch refresh: the
-link from the landmark before to the one after.
+link from the landmark before to the one after. The laser's ties (a laser the camera does not see):
+the frame each is measured in, its landmark, and the landmark's position and covariance there.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dem_graph.estimators.laser_ties import LaserTies
 from dem_graph.frontend.frontend import NewPoint
 
 
@@ -28,6 +30,7 @@ class MeasurementLog:
     seed_landmark: list[int] = field(default_factory=list)
     links: list[tuple[int, int, float]] = field(default_factory=list)  # (landmark before, after, sigma m)
     imu: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = field(default_factory=list)  # per frame: the IMU samples since the frame before
+    ties: list[LaserTies] = field(default_factory=list)  # the laser's ties to landmarks, each measured in a frame (LaserTies.frames)
 
     @property
     def n_frames(self) -> int:
@@ -58,6 +61,9 @@ class MeasurementLog:
     def add_link(self, before: int, after: int, sigma_m: float) -> None:
         """Landmark ``after`` continues ``before`` (a patch refresh), within ``sigma_m`` of it."""
         self.links.append((int(before), int(after), float(sigma_m)))
+
+    def add_ties(self, ties: LaserTies) -> None:
+        self.ties.append(ties)
 
     def seed_arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """Every seed's body-frame position (m,3) and covariance (m,3,3), in the seeds' order."""

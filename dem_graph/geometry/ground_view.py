@@ -5,7 +5,7 @@ The ground here is the body frame's z = 0 plane (the body origin is on the groun
 vehicle). The paper's method ties a laser return to the image point it falls on, so it needs the
 laser's line inside the image; a laser on a bumper, hitting the road below the camera's view, is
 only of use to an estimator that keeps a landmark after it has left the image and ties it to the
-scan that passes over its ground later.
+scan that passes over its ground later (:mod:`dem_graph.estimators.laser_ties`).
 """
 
 from __future__ import annotations
@@ -73,8 +73,8 @@ class LaserView:
             return f"{where}: {share:.0f} % of the laser's ground is in the image"
         side = "nearer than" if self.laser_ahead_m < self.camera_nearest_m else "outside"
         return (
-            f"{where}: the laser's line is {side} the camera's view ({share:.0f} % of it in the image): no return falls on an image point, "
-            "so the scale and the tilt come from the camera's mount alone"
+            f"{where}: the laser's line is {side} the camera's view ({share:.0f} % of it in the image): no return falls on an image point "
+            "(the EKF baselines cannot use it; the graph ties it to the landmarks over its ground, isam2.laser_ties)"
         )
 
 

@@ -305,6 +305,18 @@ def camera_mount(position_body_m, pitch_down_rad: float) -> np.ndarray:
     return make_pose(R, position_body_m)
 
 
+def camera_remounted(rig: SensorRig, raise_m: float, pitch_down_more_rad: float) -> SensorRig:
+    """``rig`` with its camera raised by ``raise_m`` and pitched further down by ``pitch_down_more_rad``
+    (a camera of :func:`camera_mount`'s kind), the laser moved with it (``T_cam_laser`` kept, as a
+    laser-camera calibration gives it): a rig whose camera mount was guessed wrong, for studies."""
+    T_body_cam = np.asarray(rig.T_body_cam, dtype=float)
+    pitch_down_rad = float(np.arcsin(-T_body_cam[2, 2]))
+    T_new = camera_mount(T_body_cam[:3, 3] + [0.0, 0.0, raise_m], pitch_down_rad + pitch_down_more_rad)
+    camera = rig.camera.model_copy(update={"T_body_cam": T_new})
+    laser = rig.laser.model_copy(update={"T_body_laser": T_new @ rig.T_cam_laser})
+    return rig.model_copy(update={"camera": camera, "laser": laser})
+
+
 def laser_mount(position_body_m, pitch_down_rad: float, yaw_rad: float = 0.0, roll_rad: float = 0.0) -> np.ndarray:
     """``T_body_laser`` of a scanner at ``position_body_m`` whose scan plane is tilted down by ``pitch_down_rad``."""
     return make_pose(rotation_from_rpy(roll_rad, pitch_down_rad, yaw_rad), position_body_m)
