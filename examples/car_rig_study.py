@@ -17,8 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from dem_graph.datasets.folder import with_rig
 from dem_graph.datasets.open import open_dataset
-from dem_graph.geometry.rig import camera_remounted, load_rig, save_rig
+from dem_graph.geometry.rig import camera_remounted, load_rig
 from dem_graph.pipeline import run_estimator
 from dem_graph.pipeline.config import run_config
 from dem_graph.sim.pipeline import simulate
@@ -34,12 +35,7 @@ def mis_mounted(dataset: Path, out: Path) -> Path:
     the laser moved with it (the laser-camera transform unchanged); the other files linked."""
     if out.exists():
         return out
-    out.mkdir()
-    for p in dataset.iterdir():
-        if p.name != "rig.yaml":
-            (out / p.name).symlink_to(p.resolve())
-    save_rig(camera_remounted(load_rig(dataset / "rig.yaml"), 0.07, np.radians(2.0)), out / "rig.yaml")
-    return out
+    return with_rig(dataset, out, camera_remounted(load_rig(dataset / "rig.yaml"), 0.07, np.radians(2.0)))
 
 
 def run_row(path: Path, seed: int, rig: str, estimator: str) -> dict:

@@ -131,15 +131,11 @@ def test_the_car_starts_at_its_speed_untold(car_street, tmp_path):
 def car_street_mis_mounted(car_street, tmp_path_factory):
     """The car's first 20 m with its rig.yaml's camera 7 cm higher and 2 degrees further down than it
     was (the laser moved with it: the laser-camera transform is a calibration's); the rest linked."""
-    from dem_graph.geometry.rig import camera_remounted, load_rig, save_rig
+    from dem_graph.datasets.folder import with_rig
+    from dem_graph.geometry.rig import camera_remounted, load_rig
 
     out = tmp_path_factory.mktemp("car_street_mis_mounted") / "ds"
-    out.mkdir()
-    for p in car_street.iterdir():
-        if p.name != "rig.yaml":
-            (out / p.name).symlink_to(p.resolve())
-    save_rig(camera_remounted(load_rig(car_street / "rig.yaml"), 0.07, np.radians(2.0)), out / "rig.yaml")
-    return out
+    return with_rig(car_street, out, camera_remounted(load_rig(car_street / "rig.yaml"), 0.07, np.radians(2.0)))
 
 
 def test_the_laser_below_the_view_gives_the_scale_and_the_level_on_a_rig_mounted_wrong(car_street, car_street_mis_mounted, tmp_path, caplog):

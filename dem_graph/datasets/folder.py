@@ -539,6 +539,18 @@ def open_folder_dataset(path: str | Path) -> FolderSequence:
 # writing
 
 
+def with_rig(dataset: str | Path, out: str | Path, rig: SensorRig) -> Path:
+    """A dataset folder ``out`` that is ``dataset`` with ``rig`` in its rig.yaml, its other files
+    linked (studies of a rig measured wrong: :func:`~dem_graph.geometry.rig.camera_remounted`)."""
+    dataset, out = Path(dataset), Path(out)
+    out.mkdir(parents=True)
+    for p in dataset.iterdir():
+        if p.name != "rig.yaml":
+            (out / p.name).symlink_to(p.resolve())
+    save_rig(rig, out / "rig.yaml")
+    return out
+
+
 def _float_list(T: np.ndarray) -> list:
     return [[float(x) for x in row] for row in np.asarray(T, dtype=float)]
 

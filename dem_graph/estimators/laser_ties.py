@@ -131,7 +131,6 @@ class LaserTieMaker:
         self._T_world_start = np.array(T_world_start, dtype=float)
         self._P_start = np.array(P_start, dtype=float)  # the start pose's own prior, put back when the mount agrees
         self.start: str | None = None  # "pinned" (the mount agrees with the laser's ground) or "levelled"; None until level_s has passed
-        self._pin_due = False
         self._start_ground: dict[int, np.ndarray] = {}  # landmark -> its tie's world point, for the ties of the first level_s
         self._level_until_s = t_start_s + self.settings.level_s
         self._laser = rig.laser
@@ -162,16 +161,17 @@ class LaserTieMaker:
         while self._kept and self._kept[0].t_s < t_s - s.keep_s:
             self._kept.popleft()
 
-    def _decide_start(self, t_s: float) -> LaserTies:
-        """Once ``t_s`` is past the first ``level_s``: pinned or levelled (see the module's notes); the
-        level priors of the start's ground when levelled."""
+    def _decide_start(self, t_s: float) -> dict:
+        """Once ``t_s`` is past the first ``level_s``: pinned or levelled (see the module's notes). Returns
+        the :class:`LaserTies` fields that carry the decision (the start pose's prior, or the level priors
+        of the start's ground), once; empty otherwise."""
         if self.start is not None or t_s <= self._level_until_s:
-            return NO_TIES
+            return {}
         s = self.settings
         points = np.array(list(self._start_ground.values())).reshape(-1, 3)
         if len(points) < s.min_level_ties:
-            self.start, self._pin_due = "pinned", True
-            return NO_TIES
+            self.start = "pinned"
+            return {"pin_start": self._P_start.copy()}
         p = transform_points(invert(self._T_world_start), points)
         A = np.column_stack([np.ones(len(p)), p[:, 0], p[:, 1]])
         (height_m, slope_x, slope_y), *_ = np.linalg.lstsq(A, p[:, 2], rcond=None)
@@ -179,8 +179,8 @@ class LaserTieMaker:
         self.counters["laser_start_ground_mm"] = int(round(1000.0 * height_m))
         self.counters["laser_start_ground_tilt_mdeg"] = int(round(1000.0 * tilt_deg))
         if abs(height_m) <= s.mount_off_m and tilt_deg <= s.mount_off_deg:
-            self.start, self._pin_due = "pinned", True
-            return NO_TIES
+            self.start = "pinned"
+            return {"pin_start": self._P_start.copy()}
         self.start = "levelled"
         log.warning(
             "the laser's ground over the first %.1f s lies %.0f cm %s and %.1f degrees tilted against the rig's ground under the vehicle: the "
@@ -190,7 +190,7 @@ class LaserTieMaker:
         landmarks = np.array(list(self._start_ground), dtype=np.int64)
         priors = [level_prior(self._T_world_start, X, s.sigma_level_m) for X in points]
         self.counters["laser_ties_level"] = len(landmarks)
-        return replace(NO_TIES, level_landmarks=landmarks, level_mean=np.array([m for m, _ in priors]), level_Sigma=np.array([S for _, S in priors]))
+        return {"level_landmarks": landmarks, "level_mean": np.array([m for m, _ in priors]), "level_Sigma": np.array([S for _, S in priors])}
 
     def ties(self, poses: dict[int, np.ndarray], landmarks: np.ndarray, X_world: np.ndarray, t_now_s: float) -> LaserTies:
         """Ties of the ``landmarks`` (m,) at ``X_world`` (m,3), not tied before, to the kept scans of
@@ -238,18 +238,8 @@ class LaserTieMaker:
         return self._finish(LaserTies(np.array(out_k, dtype=np.int64), np.array(out_f, dtype=np.int64), np.array(out_lm, dtype=np.int64), np.array(out_p), np.array(out_S)), t_now_s)
 
     def _finish(self, ties: LaserTies, t_s: float) -> LaserTies:
-        """``ties`` with the start's decision when it is due (the level priors, or the start pose's prior back)."""
+        """``ties`` with the start's decision when it is made (the level priors, or the start pose's prior back)."""
         decided = self._decide_start(t_s)
-        if len(decided.level_landmarks):
-            ties = replace(ties, level_landmarks=decided.level_landmarks, level_mean=decided.level_mean, level_Sigma=decided.level_Sigma)
-        return self._with_pin(ties)
-
-    def _with_pin(self, ties: LaserTies) -> LaserTies:
-        """``ties`` with the start pose's prior put back, the first time after the start was found pinned."""
-        if not self._pin_due:
-            return ties
-        self._pin_due = False
-        return replace(ties, pin_start=self._P_start.copy())
-
+        return replace(ties, **decided) if decided else ties
 
 __all__ = ["LEVEL_START_SIGMAS", "NO_TIES", "LaserTieMaker", "LaserTieSettings", "LaserTies", "level_prior", "level_start_covariance"]
